@@ -1,0 +1,1 @@
+"""plenodust analysis package."""

@@ -1,0 +1,1 @@
+"""plenodust driver package."""

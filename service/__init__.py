@@ -1,0 +1,1 @@
+"""plenodust service package."""

@@ -1,0 +1,21 @@
+"""Shared test set-up: a writable numba cache, and paths to the real fixtures."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".cache" / "numba"))
+
+import pytest  # noqa: E402
+
+SHARED = ROOT.parent / "shared"
+FIXTURES_REAL = SHARED / "fixtures" / "real"
+
+
+@pytest.fixture(scope="session")
+def real_fixtures() -> Path:
+    if not FIXTURES_REAL.is_dir():
+        pytest.fail(f"real fixtures not found at {FIXTURES_REAL}; CI clones shared/ beside the repository")
+    return FIXTURES_REAL
