@@ -1,0 +1,154 @@
+"""The service's SQLite database: one file, WAL journal, one connection per thread.
+
+The job queue (:mod:`service.queue`) and the storage index (:mod:`service.store`) share
+this file so that "job done" and "result indexed" commit in one transaction.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS exposures (
+    id          TEXT PRIMARY KEY,          -- SHA-1 of the uploaded bytes
+    run         TEXT NOT NULL,
+    frame       INTEGER NOT NULL,          -- order within the run, from 0
+    kind        TEXT NOT NULL,             -- 'lfp' or 'raw'
+    source      TEXT NOT NULL,             -- 'upload' or 'camera'
+    serial      TEXT,                      -- camera serial from the metadata, if any
+    created_at  REAL NOT NULL,
+    UNIQUE (run, frame)
+);
+CREATE TABLE IF NOT EXISTS jobs (
+    seq           INTEGER PRIMARY KEY AUTOINCREMENT,
+    id            TEXT NOT NULL UNIQUE,
+    exposure_id   TEXT NOT NULL REFERENCES exposures(id),
+    state         TEXT NOT NULL CHECK (state IN ('queued', 'running', 'done', 'failed')),
+    progress      REAL NOT NULL DEFAULT 0,
+    error         TEXT,
+    attempts      INTEGER NOT NULL DEFAULT 0,
+    lease_owner   TEXT,
+    lease_expires REAL,
+    created_at    REAL NOT NULL,
+    started_at    REAL,
+    finished_at   REAL
+);
+CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state, seq);
+CREATE TABLE IF NOT EXISTS results (
+    exposure_id  TEXT PRIMARY KEY REFERENCES exposures(id),
+    run          TEXT NOT NULL,
+    frame        INTEGER NOT NULL,
+    particles    INTEGER NOT NULL,
+    path         TEXT NOT NULL,
+    created_at   REAL NOT NULL
+);
+CREATE INDEX IF NOT EXISTS results_run ON results (run, frame);
+CREATE TABLE IF NOT EXISTS camera_pictures (
+    serial       TEXT NOT NULL,
+    picture      TEXT NOT NULL,
+    exposure_id  TEXT,
+    pulled_at    REAL NOT NULL,
+    PRIMARY KEY (serial, picture)
+);
+CREATE TABLE IF NOT EXISTS calibrations (
+    serial       TEXT PRIMARY KEY,
+    path         TEXT NOT NULL,
+    images       INTEGER NOT NULL,
+    source       TEXT NOT NULL,            -- 'camera' or 'upload'
+    created_at   REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS settings_kv (
+    key    TEXT PRIMARY KEY,
+    value  TEXT NOT NULL
+);
+"""
+
+
+class Database:
+    """A SQLite file opened in WAL mode, with one connection per thread.
+
+    Parameters
+    ----------
+    path : Path
+        The database file; its folder is created when missing.
+    busy_timeout_ms : int
+        How long a writer waits for another writer's lock before giving up.
+    """
+
+    def __init__(self, path: Path, *, busy_timeout_ms: int = 10_000) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.busy_timeout_ms = busy_timeout_ms
+        self._local = threading.local()
+        self._all: list[sqlite3.Connection] = []
+        self._lock = threading.Lock()
+        with self.write() as conn:
+            conn.executescript(SCHEMA)
+
+    def connection(self) -> sqlite3.Connection:
+        """This thread's connection (autocommit; transactions are explicit)."""
+        conn = getattr(self._local, "conn", None)
+        if conn is None:
+            conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False,
+                                   timeout=self.busy_timeout_ms / 1000)
+            conn.row_factory = sqlite3.Row
+            conn.execute("PRAGMA journal_mode=WAL")
+            # NORMAL is durable across process crashes in WAL mode; only power loss
+            # can lose the last transactions.
+            conn.execute("PRAGMA synchronous=NORMAL")
+            conn.execute(f"PRAGMA busy_timeout={int(self.busy_timeout_ms)}")
+            conn.execute("PRAGMA foreign_keys=ON")
+            self._local.conn = conn
+            with self._lock:
+                self._all.append(conn)
+        return conn
+
+    @contextmanager
+    def write(self) -> Iterator[sqlite3.Connection]:
+        """A write transaction, taken at once (``BEGIN IMMEDIATE``) so it cannot deadlock."""
+        conn = self.connection()
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            yield conn
+        except BaseException:
+            conn.execute("ROLLBACK")
+            raise
+        conn.execute("COMMIT")
+
+    def read(self, sql: str, params: tuple | dict = ()) -> list[sqlite3.Row]:
+        """Rows of one query."""
+        return self.connection().execute(sql, params).fetchall()
+
+    def writable(self) -> bool:
+        """Whether a write transaction can be committed now (for ``/readyz``)."""
+        try:
+            with self.write() as conn:
+                conn.execute("INSERT INTO settings_kv (key, value) VALUES ('ready_probe', '1') "
+                             "ON CONFLICT (key) DO UPDATE SET value = excluded.value")
+        except sqlite3.Error:
+            return False
+        return True
+
+    def get_value(self, key: str) -> str | None:
+        rows = self.read("SELECT value FROM settings_kv WHERE key = ?", (key,))
+        return rows[0]["value"] if rows else None
+
+    def set_value(self, key: str, value: str) -> None:
+        with self.write() as conn:
+            conn.execute("INSERT INTO settings_kv (key, value) VALUES (?, ?) "
+                         "ON CONFLICT (key) DO UPDATE SET value = excluded.value", (key, value))
+
+    def close(self) -> None:
+        """Close every thread's connection."""
+        with self._lock:
+            for conn in self._all:
+                try:
+                    conn.close()
+                except sqlite3.Error:
+                    pass
+            self._all.clear()
+        self._local = threading.local()

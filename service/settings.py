@@ -1,0 +1,97 @@
+"""Service settings: the only module that reads the environment (``PLENODUST_*``)."""
+
+from __future__ import annotations
+
+import re
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+# Run names become file names (one HDF5 file per run), so keep them to a safe alphabet.
+RUN_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
+_RUN_RE = re.compile(RUN_NAME_PATTERN)
+
+
+class Settings(BaseSettings):
+    """Everything the service can be told, by argument or by ``PLENODUST_<NAME>``.
+
+    Attributes
+    ----------
+    data_dir : Path
+        SQLite database, raw exposures, results and run files live here.
+    camera : str
+        ``usb``, ``wifi:HOST``, ``simulated:DIR`` or ``none``.
+    executor : str
+        ``local`` (a warm process pool on this machine) or ``dask://HOST:PORT``.
+    workers : int
+        Processes in the local pool, and jobs run at once.
+    api_key : SecretStr or None
+        When set, every mutating route needs ``Authorization: Bearer <key>``.
+    """
+
+    model_config = SettingsConfigDict(env_prefix="PLENODUST_", extra="ignore")
+
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    data_dir: Path = Path("plenodust-data")
+    camera: str = "none"
+    executor: str = "local"
+    workers: int = Field(1, ge=1, le=64)
+    api_key: SecretStr | None = None
+    # An F01 .lfp is about 16.2 MB; leave room for a RAW+TXT pair in multipart framing.
+    max_body_bytes: int = Field(40 * 1024 * 1024, ge=1024)
+    # Jobs queued or running; beyond this an upload gets 503 with Retry-After.
+    queue_capacity: int = Field(64, ge=1)
+    retry_after_s: int = Field(2, ge=1)
+    lease_s: float = Field(30.0, gt=0)
+    heartbeat_s: float = Field(5.0, gt=0)
+    max_attempts: int = Field(3, ge=1)
+    camera_poll_s: float = Field(2.0, gt=0)
+    run: str = "default"
+    # Refocused slices kept per exposure for the dashboard's slice viewer.
+    keep_slices: bool = True
+    warm_up: bool = True
+    log_level: Literal["debug", "info", "warning", "error"] = "info"
+
+    @field_validator("camera")
+    @classmethod
+    def _camera_spec(cls, value: str) -> str:
+        if value in ("none", "usb") or value.startswith(("wifi:", "simulated:")):
+            return value
+        raise ValueError(f"camera {value!r}: use usb, wifi:HOST, simulated:DIR or none")
+
+    @field_validator("executor")
+    @classmethod
+    def _executor_spec(cls, value: str) -> str:
+        if value == "local" or value.startswith(("dask://", "tcp://")):
+            return value
+        raise ValueError(f"executor {value!r}: use local or dask://HOST:PORT")
+
+    @field_validator("run")
+    @classmethod
+    def _run_name(cls, value: str) -> str:
+        if not _RUN_RE.match(value):
+            raise ValueError(f"run name {value!r}: use letters, digits, '.', '_' or '-' (at most 64)")
+        return value
+
+    @field_validator("api_key")
+    @classmethod
+    def _api_key_not_empty(cls, value: SecretStr | None) -> SecretStr | None:
+        # An empty variable means "no key", never "the empty key".
+        if value is not None and not value.get_secret_value():
+            return None
+        return value
+
+
+def valid_run_name(name: str) -> bool:
+    """Whether ``name`` can be used as a run name (it becomes a file name)."""
+    return bool(_RUN_RE.match(name))
+
+
+@lru_cache
+def get_settings() -> Settings:
+    """The settings from the environment, read once."""
+    return Settings()
