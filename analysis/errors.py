@@ -31,6 +31,10 @@ class RawSizeError(FormatError):
     """A raw sensor payload has the wrong number of bytes for its declared size."""
 
 
+class MissingFileError(AnalysisError, FileNotFoundError):
+    """A file another one needs is absent (the ``.TXT`` of a ``.RAW``, a bundle's ``nextFile``)."""
+
+
 class CalibrationError(AnalysisError):
     """No usable calibration: no white image, a failed lattice fit, a bad cache."""
 

@@ -1,0 +1,41 @@
+"""Writing files so that a reader never sees half of one: temp file, fsync, rename."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Mapping
+
+
+def write_atomic(path: str | Path, data: bytes | bytearray | memoryview) -> Path:
+    """Write ``data`` to ``path`` through a temp file in the same folder and `os.replace`.
+
+    On any error the temp file is removed and ``path`` is left as it was.
+    """
+    return write_all_atomic({Path(path): data})[0]
+
+
+def write_all_atomic(files: Mapping[Path, bytes | bytearray | memoryview]) -> list[Path]:
+    """Write several files, renaming them into place only once all were written and synced.
+
+    If writing any of them fails, none is renamed and every temp file is removed. (The
+    renames themselves are not one atomic step, but each file is whole when it appears.)
+    """
+    temps: list[tuple[Path, Path]] = []
+    try:
+        for path, data in files.items():
+            path = Path(path)
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+            temps.append((Path(tmp), path))
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(data)
+                fh.flush()
+                os.fsync(fh.fileno())
+        for tmp, path in temps:
+            os.replace(tmp, path)
+    except BaseException:
+        for tmp, _ in temps:
+            tmp.unlink(missing_ok=True)
+        raise
+    return [path for _, path in temps]

@@ -1,0 +1,277 @@
+"""White ("modulation") images: the camera's ``MOD_nnnn.RAW`` + ``.TXT`` files, their ``.TXT``
+metadata, and the ``data.C.N`` backup bundles that carry them (lytro-f01.md sections 1.4, 1.8).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from .atomic_write import write_all_atomic
+from .errors import FormatError, MetadataError, MissingFileError, NoWhiteImageError, RawSizeError
+from .frame_metadata import check_packing, image_size, lookup, master_txt_bytes, parse_txt, unwrap_master
+from .lfp import build_container, parse_json, read_container_file, sha1_ref
+from .raw12 import pack12, unpack12
+
+log = logging.getLogger(__name__)
+
+BUNDLE_MAX_BYTES = 256 * 1024 * 1024
+_BUNDLE_RE = re.compile(r"data\.C\.(\d+)")
+_MOD_RE = re.compile(r"(MOD_\d+)\.(RAW|TXT)", re.IGNORECASE)
+
+
+@dataclass
+class WhiteImage:
+    """One white image: packed raw bytes and the metadata of its ``.TXT``."""
+
+    name: str
+    metadata: dict
+    private_metadata: dict = field(default_factory=dict)
+    raw: bytes = b""
+
+    @classmethod
+    def from_image(cls, name: str, image: np.ndarray, metadata: dict,
+                   private_metadata: dict | None = None) -> "WhiteImage":
+        """Pack a uint16 image (values 0..4095) into a white image."""
+        return cls(name=name, metadata=metadata, private_metadata=dict(private_metadata or {}),
+                   raw=pack12(image))
+
+    @property
+    def serial(self) -> str | None:
+        value = lookup(self.private_metadata, "camera.serialNumber")
+        return None if value is None else str(value)
+
+    @property
+    def zoom_step(self) -> int | None:
+        value = lookup(self.metadata, "devices.lens.zoomStep")
+        return None if value is None else int(value)
+
+    @property
+    def focus_step(self) -> int | None:
+        value = lookup(self.metadata, "devices.lens.focusStep")
+        return None if value is None else int(value)
+
+    @property
+    def exposure_duration_s(self) -> float | None:
+        value = lookup(self.metadata, "devices.shutter.frameExposureDuration")
+        return None if value is None else float(value)
+
+    @property
+    def sha1(self) -> str:
+        """Hex SHA-1 of the packed raw bytes."""
+        return hashlib.sha1(self.raw).hexdigest()
+
+    def image(self) -> np.ndarray:
+        """The raw image, ndarray of shape (H, W), uint16, values 0..4095.
+
+        Raises
+        ------
+        RawSizeError
+            If the raw size disagrees with the metadata's ``image.width/height``.
+        """
+        check_packing(self.metadata)
+        width, height = image_size(self.metadata)
+        try:
+            return unpack12(self.raw, width=width, height=height)
+        except RawSizeError as exc:
+            raise RawSizeError(f"white image {self.name}: {exc}") from None
+
+
+def parse_white_txt(data: bytes | bytearray | memoryview) -> tuple[dict, dict]:
+    """Frame and private metadata of a white-image ``.TXT``.
+
+    The root is ``master.picture.frameArray[0].frame.{metadata, privateMetadata}``; bytes
+    after the final ``}`` (the camera pads) are ignored.
+
+    Raises
+    ------
+    MetadataError
+        If it is not JSON or not of that form.
+    """
+    root = parse_json(data, what="white-image .TXT")
+    if not isinstance(root, dict):
+        raise MetadataError(f"white-image .TXT holds a JSON {type(root).__name__}, not an object")
+    return unwrap_master(root, what="white-image .TXT")
+
+
+def white_txt_bytes(metadata: dict, private_metadata: dict) -> bytes:
+    """A white-image ``.TXT`` (inverse of `parse_white_txt`)."""
+    return master_txt_bytes(metadata, private_metadata)
+
+
+def _bundle_index(path: Path) -> int | None:
+    m = _BUNDLE_RE.fullmatch(path.name)
+    return int(m.group(1)) if m else None
+
+
+def read_bundle(path: str | Path) -> dict[str, bytes]:
+    """All files of a ``data.C.N`` backup chain, starting at ``path``.
+
+    Each container's TOC lists ``files[]`` (``name``, ``dataRef``) and may name the next
+    container in ``nextFile``, looked up in the same folder.
+
+    Returns
+    -------
+    dict
+        Camera path (e.g. ``C:\\T1CALIB\\MOD_0000.RAW``) -> file bytes, in chain order.
+
+    Raises
+    ------
+    MissingFileError
+        If a ``nextFile`` is not in the folder.
+    FormatError
+        If the chain loops, or a TOC has no ``files[]``; and every container error.
+    MissingSectionError
+        If a ``dataRef`` names no section.
+    """
+    path = Path(path)
+    files: dict[str, bytes] = {}
+    seen: list[Path] = []
+    current: Path | None = path
+    while current is not None:
+        if current.resolve() in seen:
+            chain = " -> ".join(p.name for p in seen + [current.resolve()])
+            raise FormatError(f"backup bundle chain loops ({chain}); the nextFile fields are damaged")
+        seen.append(current.resolve())
+        if not current.is_file():
+            raise MissingFileError(f"backup bundle {current} is missing (named by nextFile of "
+                                   f"{seen[-2].name if len(seen) > 1 else 'the caller'}); "
+                                   "copy the whole data.C.* set into one folder")
+        container = read_container_file(current)
+        entries = container.toc.get("files")
+        if not isinstance(entries, list):
+            raise FormatError(f"{current.name} has no files[] in its table of contents; it is not a "
+                              "data.C.N backup bundle (a picture? use read_exposure)")
+        for k, entry in enumerate(entries):
+            if not isinstance(entry, dict) or not isinstance(entry.get("name"), str) \
+                    or not isinstance(entry.get("dataRef"), str):
+                raise MetadataError(f"{current.name}: files[{k}] lacks a 'name' or 'dataRef' string")
+            files[entry["name"]] = bytes(container.section(entry["dataRef"]).data)
+        nxt = container.toc.get("nextFile")
+        # nextFile is a bare file name; never follow it out of the folder.
+        current = current.parent / Path(nxt.replace("\\", "/")).name if isinstance(nxt, str) and nxt else None
+    return files
+
+
+def write_bundle(files: Mapping[str, bytes | bytearray | memoryview], folder: str | Path, *,
+                 max_bytes: int = BUNDLE_MAX_BYTES) -> list[Path]:
+    """Write files as a ``data.C.0``, ``data.C.1``, ... chain (inverse of `read_bundle`).
+
+    A new container is started before the payloads of one would exceed ``max_bytes``
+    (a single larger file gets a container of its own). All containers are written to temp
+    files first and renamed into place only when all are complete.
+
+    Returns
+    -------
+    list of Path
+        The containers, in chain order.
+    """
+    folder = Path(folder)
+    if max_bytes <= 0:
+        raise ValueError(f"max_bytes must be positive, not {max_bytes}")
+    groups: list[list[tuple[str, bytes | bytearray | memoryview]]] = [[]]
+    size = 0
+    for name, data in files.items():
+        if groups[-1] and size + len(data) > max_bytes:
+            groups.append([])
+            size = 0
+        groups[-1].append((name, data))
+        size += len(data)
+    out = {}
+    for k, group in enumerate(groups):
+        toc: dict = {"files": [{"name": name, "dataRef": sha1_ref(data)} for name, data in group]}
+        if k + 1 < len(groups):
+            toc["nextFile"] = f"data.C.{k + 1}"
+        out[folder / f"data.C.{k}"] = build_container(toc, [data for _, data in group])
+    return write_all_atomic(out)
+
+
+def _pairs_from_named(named: Mapping[str, object], where: str) -> dict[str, dict[str, object]]:
+    """Group ``MOD_nnnn.RAW``/``.TXT`` items by stem (case of the extension ignored)."""
+    pairs: dict[str, dict[str, object]] = {}
+    for name, item in named.items():
+        base = name.replace("\\", "/").rsplit("/", 1)[-1]
+        m = _MOD_RE.fullmatch(base)
+        if m:
+            pairs.setdefault(m.group(1).upper(), {})[m.group(2).upper()] = item
+    for stem in sorted(pairs):
+        missing = {"RAW", "TXT"} - set(pairs[stem])
+        if missing:
+            log.warning("white image %s in %s has no .%s; skipped", stem, where, missing.pop())
+            del pairs[stem]
+    return pairs
+
+
+def _white(stem: str, raw: bytes, txt: bytes, where: str) -> WhiteImage:
+    metadata, private = parse_txt(txt, what=f"{stem}.TXT in {where}")
+    white = WhiteImage(name=stem, metadata=metadata, private_metadata=private, raw=raw)
+    width, height = image_size(metadata)
+    if len(raw) != width * height * 3 // 2:
+        raise RawSizeError(f"{stem}.RAW in {where} has {len(raw)} bytes, but its .TXT says {width}x{height} "
+                           f"({width * height * 3 // 2} bytes packed); the file is truncated, copy it again")
+    return white
+
+
+def load_white_images(source: str | Path) -> list[WhiteImage]:
+    """All white images in a folder of ``MOD_nnnn.RAW``/``.TXT``, a folder holding ``data.C.0``,
+    or a ``data.C.N`` file.
+
+    Pairs lacking one of their files are skipped with a logged warning.
+
+    Returns
+    -------
+    list of WhiteImage, sorted by name.
+
+    Raises
+    ------
+    NoWhiteImageError
+        If no complete pair is found.
+    MetadataError, RawSizeError
+        If a pair's ``.TXT`` is not metadata or its ``.RAW`` has the wrong size.
+    """
+    source = Path(source)
+    if not source.exists():
+        raise FileNotFoundError(f"no white-image folder or bundle at {source}")
+    if source.is_file():
+        if _bundle_index(source) is None:
+            raise FormatError(f"{source.name} is not a data.C.N bundle; give it, or a folder of MOD_nnnn files")
+        named: dict[str, object] = dict(read_bundle(source))
+    elif (source / "data.C.0").is_file():
+        named = dict(read_bundle(source / "data.C.0"))
+    else:
+        named = {p.name: p for p in source.iterdir() if p.is_file()}
+    pairs = _pairs_from_named(named, str(source))
+    whites = []
+    for stem, pair in sorted(pairs.items()):
+        raw, txt = pair["RAW"], pair["TXT"]
+        raw_b = raw.read_bytes() if isinstance(raw, Path) else raw
+        txt_b = txt.read_bytes() if isinstance(txt, Path) else txt
+        whites.append(_white(stem, raw_b, txt_b, str(source)))  # type: ignore[arg-type]
+    if not whites:
+        raise NoWhiteImageError(
+            f"no white images in {source}: looked for MOD_nnnn.RAW with MOD_nnnn.TXT (as in the camera's "
+            "C:\\T1CALIB\\) in the folder or its data.C.N backup bundles; pull the calibration files "
+            "from the camera first")
+    return whites
+
+
+def write_white_pair(white: WhiteImage, folder: str | Path) -> tuple[Path, Path]:
+    """Write ``<name>.RAW`` and ``<name>.TXT`` into ``folder`` as the camera stores them (atomically).
+
+    Raises
+    ------
+    RawSizeError
+        If the raw size disagrees with the metadata (nothing is written).
+    """
+    folder = Path(folder)
+    _white(white.name, white.raw, white_txt_bytes(white.metadata, white.private_metadata), str(folder))
+    raw_path, txt_path = folder / f"{white.name}.RAW", folder / f"{white.name}.TXT"
+    write_all_atomic({raw_path: white.raw,
+                      txt_path: white_txt_bytes(white.metadata, white.private_metadata)})
+    return raw_path, txt_path
