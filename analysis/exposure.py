@@ -158,12 +158,16 @@ def exposure_from_raw_pair(raw: bytes | bytearray | memoryview, txt: bytes | byt
 
 
 def companion(path: Path, suffix: str) -> Path | None:
-    """The file beside ``path`` with the same stem and ``suffix`` in any letter case, if any."""
+    """The file beside ``path`` with the same stem and ``suffix``, letter case ignored, if any.
+
+    Copies from the camera's FAT file system may come in either case.
+    """
     exact = path.with_suffix(suffix.upper() if path.suffix.isupper() else suffix.lower())
     if exact.is_file():
         return exact
-    for candidate in path.parent.glob(f"{path.stem}.*"):
-        if candidate.suffix.lower() == suffix.lower() and candidate.is_file():
+    wanted = (path.stem + suffix).lower()
+    for candidate in path.parent.iterdir():
+        if candidate.name.lower() == wanted and candidate.is_file():
             return candidate
     return None
 
