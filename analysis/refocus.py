@@ -1,0 +1,347 @@
+"""Refocus stack, sub-aperture image and their products (the paper's equation 2, Ng 2005).
+
+Shift-only refocus: the ray through aperture point ``u`` recorded at lens centre ``s_k`` is
+added at lens-plane position ``s_hat = s_k + u * (1/alpha - 1)``. Every slice then has the
+same magnification: a point at ``(X, Y, Z)`` whose image forms at ``Fp`` is sharp at
+``alpha = Fp / P`` and lands at ``s_hat = (X, Y) * P / Z`` (metres on the lens plane), which
+:class:`ImageGrid` turns into output pixels.
+
+How a slice is formed:
+
+1. Samples (table entries) are read from the raw image, minus the black level and the
+   background (a robust median). Unless ``noise_sigmas=None``, only samples above
+   ``noise_sigmas`` robust standard deviations contribute: dust frames are sparse, so this
+   skips almost all the work, and the skipped samples are pure noise.
+2. Each sample is shifted (continuously, sub-lens) and split barycentrically onto the 3 lens
+   sites of the lattice triangle it falls in, for all alphas at once.
+3. Each site is divided by the light it *could* receive: the same splat of every sample's
+   ``weight`` (the normalised white image, which holds ``cos^4`` and micro-lens vignetting, or
+   ``cos^4`` alone without one). So ``E = sum(b * (raw - black - bg)) / sum(b * weight)``:
+   a white scene gives a flat image, lattice and edge patterns cancel, and ``cos^4`` is counted
+   once (it is in both the data and the weight; nothing divides by the white image per pixel).
+   Sites that could receive less than ``min_coverage`` of the typical light are left out.
+4. Sites are interpolated barycentrically onto the regular :class:`ImageGrid`.
+
+The normalisation depends only on the table and the alphas; it is computed once (all samples,
+about a second full size) and kept in the table, and :func:`analysis.lightfield.save_table`
+stores it with the table.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+
+from . import _refocus_kernels as kern
+from .camera_model import Optics
+from .errors import ParameterError
+from .image_grid import ImageGrid
+from .lightfield import LightFieldTable
+
+__all__ = ["ImageGrid", "Samples", "default_alphas", "alphas_for_depth_range", "select_samples",
+           "refocus_stack", "subaperture_image", "products", "normalisation"]
+
+DEFAULT_MIN_COVERAGE = 0.25
+# Below this many DN the noise estimate is taken as quantisation-limited.
+_MIN_SIGMA_DN = 0.5
+
+
+@dataclass(frozen=True)
+class Samples:
+    """Samples of one raw image chosen for the splat (reuse it for the stack and sub-aperture).
+
+    Attributes
+    ----------
+    ids : ndarray (M,), int32
+        Indices into the table's samples.
+    values : ndarray (M,), float32
+        ``raw - black_level - background`` of those samples.
+    background : float
+        Robust background (median of ``raw - black_level`` over the table's samples), DN.
+    sigma : float
+        Robust noise (1.4826 * MAD), DN.
+    threshold : float
+        Samples with ``raw - black_level - background <= threshold`` were skipped (``-inf``: none).
+    """
+
+    ids: np.ndarray
+    values: np.ndarray
+    background: float
+    sigma: float
+    threshold: float
+
+
+def default_alphas(n: int = 40, lo: float = 0.987, hi: float = 1.013) -> np.ndarray:
+    """``n`` refocus parameters evenly spaced over ``[lo, hi]`` (float64, ascending).
+
+    >>> default_alphas(3).round(3).tolist()
+    [0.987, 1.0, 1.013]
+    """
+    if n < 1 or not (0 < lo <= hi):
+        raise ParameterError(f"need n >= 1 and 0 < lo <= hi for the alpha range, got n={n}, lo={lo}, hi={hi}")
+    return np.linspace(lo, hi, n)
+
+
+def alphas_for_depth_range(z_min_mm: float, z_max_mm: float, n: int, optics: Optics) -> np.ndarray:
+    """``n`` alphas evenly spaced (ascending) between the alphas in focus at two depths.
+
+    Uses the thin-lens model of ``optics`` (``Optics.alpha_of_z``); the near depth gives the
+    largest alpha.
+
+    Raises
+    ------
+    ParameterError
+        If the range is empty, not beyond the focal length, or ``n < 1``.
+    MetadataError
+        If the optics have no exit-pupil distance (use explicit alphas then).
+    """
+    if n < 1 or not (0 < z_min_mm < z_max_mm):
+        raise ParameterError(f"need 0 < z_min_mm < z_max_mm and n >= 1, got {z_min_mm}, {z_max_mm}, n={n}")
+    if z_min_mm <= optics.focal_length_m * 1e3:
+        raise ParameterError(f"z_min_mm={z_min_mm} is inside the focal length ({optics.focal_length_m * 1e3} mm); "
+                             "objects that close are not imaged")
+    a_near = float(optics.alpha_of_z(z_min_mm))
+    a_far = float(optics.alpha_of_z(z_max_mm))
+    return np.linspace(a_far, a_near, n)
+
+
+def _check_image(image: np.ndarray, table: LightFieldTable) -> np.ndarray:
+    image = np.asarray(image)
+    if image.shape != (table.height, table.width):
+        raise ParameterError(f"raw image is {image.shape}, the look-up table was built for "
+                             f"{(table.height, table.width)}; use the calibration of this camera")
+    if image.dtype != np.uint16:
+        if not np.issubdtype(image.dtype, np.integer):
+            raise ParameterError(f"raw image must be integer (uint16 raw counts), got {image.dtype}")
+        image = image.astype(np.uint16)
+    return np.ascontiguousarray(image).reshape(-1)
+
+
+def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: float | None = None,
+                   background: float | None = None, noise_sigmas: float | None = 3.0) -> Samples:
+    """Read the table's samples from a raw image and keep those above the noise.
+
+    Parameters
+    ----------
+    image : ndarray of shape (H, W), uint16
+        Raw sensor counts.
+    table : LightFieldTable
+    black_level : float, optional
+        Raw black level; default ``table.black_level``.
+    background : float, optional
+        Level (DN above black) subtracted from every sample; default: the median of the
+        samples (robust: particles are a small fraction). Pass ``0.0`` to keep it.
+    noise_sigmas : float or None
+        Keep samples more than this many robust standard deviations above the background;
+        ``None`` keeps every sample (dense, slower, same normalisation).
+
+    Returns
+    -------
+    Samples
+    """
+    flat = _check_image(image, table)
+    black = table.black_level if black_level is None else float(black_level)
+    hist = kern.raw_histogram(flat, table.pixel_index, 1)
+    median_raw, sigma = _median_and_sigma(hist)
+    bg = median_raw - black if background is None else float(background)
+    if noise_sigmas is None:
+        threshold = -np.inf
+    else:
+        if noise_sigmas < 0:
+            raise ParameterError(f"noise_sigmas must be >= 0 or None, got {noise_sigmas}")
+        threshold = float(noise_sigmas) * max(sigma, _MIN_SIGMA_DN)
+    keep = np.ones(table.n_samples, dtype=np.bool_)
+    ids, values = kern.select_samples(flat, table.pixel_index, keep, np.float32(black + bg),
+                                      np.float32(threshold), numba.get_num_threads())
+    return Samples(ids=ids, values=values, background=float(bg), sigma=float(sigma), threshold=float(threshold))
+
+
+def _median_and_sigma(hist: np.ndarray) -> tuple[float, float]:
+    """Median and 1.4826 * MAD of integer values given by their histogram."""
+    total = int(hist.sum())
+    if total == 0:
+        return 0.0, 0.0
+    cum = np.cumsum(hist)
+    median = int(np.searchsorted(cum, (total + 1) // 2))
+    dev = np.abs(np.arange(hist.size) - median)
+    dev_hist = np.bincount(dev, weights=hist)
+    mad = int(np.searchsorted(np.cumsum(dev_hist), (total + 1) // 2))
+    return float(median), 1.4826 * float(mad)
+
+
+def _coeffs(alphas: np.ndarray) -> np.ndarray:
+    alphas = np.asarray(alphas, dtype=np.float64).reshape(-1)
+    if alphas.size == 0 or not np.all(np.isfinite(alphas)) or np.any(alphas <= 0):
+        raise ParameterError("alphas must be a non-empty list of positive numbers (e.g. default_alphas())")
+    return (1.0 / alphas - 1.0).astype(np.float32)
+
+
+def _splat_sites(table: LightFieldTable, ids: np.ndarray, values: np.ndarray, coeffs: np.ndarray,
+                 scale: np.ndarray | None) -> np.ndarray:
+    """Splat samples onto the site grid; return (n_sites, n_alpha) float32, times ``scale``."""
+    n_j, n_i = table.site_shape
+    n_chunks = max(1, min(numba.get_num_threads(), ids.size // 4096 + 1))
+    acc = np.zeros((n_chunks, n_j * n_i, coeffs.size), dtype=np.float32)
+    kern.splat(ids, values, table.lens, table.lens_site, table.u_m, table.v_m,
+               table.inverse_basis_m, coeffs, n_i, n_j, acc)
+    if scale is None:
+        scale = np.ones((n_j * n_i, coeffs.size), dtype=np.float32)
+    kern.reduce_chunks(acc, scale)
+    return acc[0]
+
+
+def normalisation(table: LightFieldTable, alphas: np.ndarray, *, keep: np.ndarray | None = None,
+                  key_extra: bytes = b"", min_coverage: float = DEFAULT_MIN_COVERAGE) -> np.ndarray:
+    """Per-site inverse of the light each lens site can receive at each alpha (cached in the table).
+
+    Returns
+    -------
+    ndarray of shape (n_sites, n_alpha), float32
+        ``1 / sum(b * weight)`` over all samples (or those in ``keep``); 0 where a site could
+        receive less than ``min_coverage`` times the median of the sites that receive any.
+    """
+    coeffs = _coeffs(alphas)
+    key = coeffs.tobytes() + np.float32(min_coverage).tobytes() + key_extra
+    cached = table._normalisations.get(key)
+    if cached is not None:
+        return cached
+    ids = np.arange(table.n_samples, dtype=np.int32) if keep is None else np.flatnonzero(keep).astype(np.int32)
+    den = _splat_sites(table, ids, table.weight[ids], coeffs, None)
+    inv = np.zeros_like(den)
+    for a in range(coeffs.size):
+        d = den[:, a]
+        positive = d[d > 0]
+        if positive.size == 0:
+            continue
+        enough = d >= min_coverage * float(np.median(positive))
+        inv[enough, a] = 1.0 / d[enough]
+    table._normalisations[key] = inv
+    return inv
+
+
+def _to_grid(table: LightFieldTable, site_values: np.ndarray, inv: np.ndarray, grid: ImageGrid,
+             out: np.ndarray) -> np.ndarray:
+    n_j, n_i = table.site_shape
+    i0, j0 = table.site_origin
+    inv_b = table.inverse_basis_m
+    # Site coordinates of output pixel (0, 0) and per column / row step.
+    origin = inv_b @ np.array([grid.x0_m, grid.y0_m]) - np.array([i0, j0], dtype=np.float64)
+    d_col = inv_b @ np.array([grid.step_m, 0.0])
+    d_row = inv_b @ np.array([0.0, grid.step_m])
+    kern.interpolate_to_grid(site_values, inv > 0, n_i, n_j, origin, d_col, d_row, out)
+    return out
+
+
+def refocus_stack(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray | None = None, *,
+                  grid: ImageGrid | None = None, black_level: float | None = None,
+                  background: float | None = None, noise_sigmas: float | None = 3.0,
+                  min_coverage: float = DEFAULT_MIN_COVERAGE, samples: Samples | None = None,
+                  out: np.ndarray | None = None) -> np.ndarray:
+    """Refocused images ``E_alpha`` of one raw exposure, one per alpha.
+
+    Parameters
+    ----------
+    image : ndarray of shape (H, W), uint16
+        Raw sensor counts (the table's sensor size).
+    table : LightFieldTable
+    alphas : ndarray of shape (A,), optional
+        Refocus parameters (virtual image plane at ``alpha * P``); default :func:`default_alphas`.
+    grid : ImageGrid, optional
+        Output grid; default ``table.grid``.
+    black_level, background, noise_sigmas
+        Sample selection, see :func:`select_samples` (ignored when ``samples`` is given).
+    min_coverage : float
+        Lens sites that could receive less than this fraction of the typical light are left out.
+    samples : Samples, optional
+        A selection from :func:`select_samples`, to share it with :func:`subaperture_image`.
+    out : ndarray of shape (A, grid.height, grid.width), float32, optional
+        Where to write the stack.
+
+    Returns
+    -------
+    ndarray of shape (A, grid.height, grid.width), float32
+        Light per unit weight (1 for a uniform scene as bright as the white image, after the
+        background is subtracted); 0 where no lens contributes, never NaN.
+    """
+    alphas = default_alphas() if alphas is None else alphas
+    coeffs = _coeffs(alphas)
+    grid = table.grid if grid is None else grid
+    shape = (coeffs.size, grid.height, grid.width)
+    if out is None:
+        out = np.empty(shape, dtype=np.float32)
+    elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise ParameterError(f"out must be a C-contiguous float32 array of shape {shape}")
+    if samples is None:
+        samples = select_samples(image, table, black_level=black_level, background=background,
+                                 noise_sigmas=noise_sigmas)
+    inv = normalisation(table, alphas, min_coverage=min_coverage)
+    sites = _splat_sites(table, samples.ids, samples.values, coeffs, inv)
+    return _to_grid(table, sites, inv, grid, out)
+
+
+def subaperture_image(image: np.ndarray, table: LightFieldTable, *, fraction: float = 0.3,
+                      blur_sigma_px: float = 1.0, grid: ImageGrid | None = None,
+                      black_level: float | None = None, background: float | None = None,
+                      noise_sigmas: float | None = 3.0, min_coverage: float = DEFAULT_MIN_COVERAGE,
+                      samples: Samples | None = None) -> np.ndarray:
+    """Image through the central ``fraction`` of the aperture (digital stopping-down), blurred.
+
+    Only samples with ``|(u, v)| <= fraction * aperture_radius_m`` contribute, unshifted
+    (``alpha = 1``); a small aperture has a large depth of field, so every particle shows, at
+    the same magnification as the refocused slices. The result is blurred with a Gaussian of
+    ``blur_sigma_px`` output pixels and clipped at 0 (so that a product with a slice never turns
+    two negative noise values into a positive one).
+
+    Returns
+    -------
+    ndarray of shape (grid.height, grid.width), float32
+    """
+    if not (0 < fraction <= 1):
+        raise ParameterError(f"fraction of the aperture must be in (0, 1], got {fraction}")
+    if blur_sigma_px < 0:
+        raise ParameterError(f"blur_sigma_px must be >= 0, got {blur_sigma_px}")
+    grid = table.grid if grid is None else grid
+    if samples is None:
+        samples = select_samples(image, table, black_level=black_level, background=background,
+                                 noise_sigmas=noise_sigmas)
+    r_max = fraction * table.aperture_radius_m
+    central = (table.u_m.astype(np.float64) ** 2 + table.v_m.astype(np.float64) ** 2) <= r_max * r_max
+    alphas = np.ones(1)
+    inv = normalisation(table, alphas, keep=central, key_extra=b"sub" + np.float64(fraction).tobytes(),
+                        min_coverage=min_coverage)
+    chosen = central[samples.ids]
+    sites = _splat_sites(table, samples.ids[chosen], samples.values[chosen], _coeffs(alphas), inv)
+    out = np.empty((1, grid.height, grid.width), dtype=np.float32)
+    img = _to_grid(table, sites, inv, grid, out)[0]
+    if blur_sigma_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), sigmaX=blur_sigma_px, sigmaY=blur_sigma_px,
+                               borderType=cv2.BORDER_CONSTANT)
+    np.maximum(img, 0.0, out=img)
+    return img
+
+
+def products(stack: np.ndarray, subaperture: np.ndarray, *, out: np.ndarray | None = None) -> np.ndarray:
+    """Each refocused slice times the sub-aperture image (the paper's multiplicative combination).
+
+    Parameters
+    ----------
+    stack : ndarray of shape (A, H, W), float32
+    subaperture : ndarray of shape (H, W), float32
+    out : ndarray like ``stack``, optional (may be ``stack`` itself to save memory)
+
+    Returns
+    -------
+    ndarray of shape (A, H, W), float32
+    """
+    stack = np.ascontiguousarray(stack, dtype=np.float32)
+    subaperture = np.ascontiguousarray(subaperture, dtype=np.float32)
+    if stack.ndim != 3 or subaperture.shape != stack.shape[1:]:
+        raise ParameterError(f"stack {stack.shape} and sub-aperture image {subaperture.shape} must be "
+                             "(A, H, W) and (H, W) on the same grid")
+    if out is None:
+        out = np.empty_like(stack)
+    kern.multiply_slices(stack, subaperture, out)
+    return out
