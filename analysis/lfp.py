@@ -167,6 +167,7 @@ class ContainerReport:
     toc: dict | None = None
     missing_refs: list[tuple[str, str]] = field(default_factory=list)
     problems: list[str] = field(default_factory=list)
+    container: LfpContainer | None = None  # the readable sections and the TOC, when there is one
 
     @property
     def ok(self) -> bool:
@@ -329,7 +330,8 @@ def inspect_container(data: bytes | bytearray | memoryview) -> ContainerReport:
     except FormatError as exc:
         report.problems.append(str(exc))
         return report
-    report.missing_refs = LfpContainer(sections, report.toc).missing_refs()
+    report.container = LfpContainer(sections, report.toc)
+    report.missing_refs = report.container.missing_refs()
     for path, ref in report.missing_refs:
         report.problems.append(f"{path} names section {ref}, which is not in the file")
     return report
