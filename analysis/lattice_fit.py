@@ -36,6 +36,7 @@ _STRIDE_PX = 32
 # stage uses all of them. Seed errors of 0.2 % pitch and 1 mrad drift less than a quarter
 # cycle over the first radius.
 _STAGE_RADII_PX = (300.0, 700.0, 1400.0, math.inf)
+_MIN_MODULATION = 0.02
 
 
 @dataclass(frozen=True)
@@ -140,10 +141,11 @@ def _demodulate_blocks(image, ex_re, ex_im, ey_re, ey_im, window, stride, out): 
                 out[by, bx, k, 1] = acc[k, 1]
 
 
-def _block_phases(image: np.ndarray, seed: Lattice) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Demodulated phase and amplitude of each block at the seed's three fundamentals.
+def _demodulate(image: np.ndarray, seed: Lattice) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """Each block's complex amplitude at the seed's three fundamentals.
 
-    Returns block centres (N, 2) relative to the seed origin, phases (N, 3) and amplitudes (N, 3).
+    Returns block centres (N, 2) relative to the seed origin, complex amplitudes (N, 3) and
+    the block grid's shape ``(rows, columns)`` (N = rows * columns, row-major).
     """
     h, w = image.shape
     g = fundamental_frequencies(seed)
@@ -164,7 +166,39 @@ def _block_phases(image: np.ndarray, seed: Lattice) -> tuple[np.ndarray, np.ndar
     # The symmetric window's centroid is the block's middle, c0 + B/2 in pixel coordinates.
     cx = bx.ravel() * _STRIDE_PX + _BLOCK_PX / 2 - seed.origin_x
     cy = by.ravel() * _STRIDE_PX + _BLOCK_PX / 2 - seed.origin_y
-    return np.stack([cx, cy], axis=1), np.angle(z), np.abs(z)
+    return np.stack([cx, cy], axis=1), z, (nby, nbx)
+
+
+def _coarse_frequencies(z: np.ndarray, grid: tuple[int, int], use: np.ndarray, seed: Lattice) -> Lattice:
+    """Pitch, rotation and row spacing from the phase steps between neighbouring blocks.
+
+    A frequency error dG turns the block phase by 2 pi dG . stride from one block to the next,
+    unambiguous while |dG| < 1 / (2 stride): about 13 % in pitch or 0.1 rad in rotation.
+    """
+    zg = z.reshape(grid[0], grid[1], 3)
+    ug = use.reshape(grid)
+    both_x = (ug[:, 1:] & ug[:, :-1])[..., None]
+    both_y = (ug[1:, :] & ug[:-1, :])[..., None]
+    step_x = np.sum(np.where(both_x, zg[:, 1:] * np.conj(zg[:, :-1]), 0.0), axis=(0, 1))
+    step_y = np.sum(np.where(both_y, zg[1:, :] * np.conj(zg[:-1, :]), 0.0), axis=(0, 1))
+    dg = np.stack([np.angle(step_x), np.angle(step_y)], axis=1) / (2.0 * np.pi * _STRIDE_PX)
+    target = fundamental_frequencies(seed) + dg
+    scale = 1.0 / np.linalg.norm(target, axis=1, keepdims=True)
+
+    def residuals(q: np.ndarray) -> np.ndarray:
+        lat = seed.with_changes(pitch_px=float(q[0]), rotation_rad=float(q[1]), scale_y=float(q[2]))
+        return ((fundamental_frequencies(lat) - target) * scale).ravel()
+
+    q = least_squares(residuals, [seed.pitch_px, seed.rotation_rad, seed.scale_y],
+                      x_scale=[0.01, 1e-3, 1e-3]).x
+    return seed.with_changes(pitch_px=float(q[0]), rotation_rad=float(q[1]), scale_y=float(q[2]))
+
+
+def _central_slices(shape: tuple[int, ...], seed: Lattice) -> tuple[slice, slice]:
+    r = int(_STAGE_RADII_PX[0])
+    cx = min(max(int(seed.origin_x), 0), shape[1])
+    cy = min(max(int(seed.origin_y), 0), shape[0])
+    return slice(max(cy - r, 0), cy + r), slice(max(cx - r, 0), cx + r)
 
 
 def _lattice_from_params(p: np.ndarray, seed: Lattice) -> Lattice:
@@ -184,14 +218,13 @@ def _wrap(phase: np.ndarray) -> np.ndarray:
     return (phase + np.pi) % (2.0 * np.pi) - np.pi
 
 
-def _initial_shift(phases: np.ndarray, weights: np.ndarray, seed: Lattice) -> np.ndarray:
-    """Origin shift from the mean central phases, reduced to the lens nearest the seed origin."""
-    g = fundamental_frequencies(seed)
-    # Amplitude-weighted circular mean of each fundamental's phase: -2 pi g_k . delta.
-    psi = np.angle(np.sum(weights * np.exp(1j * phases), axis=0))
+def _initial_shift(psi: np.ndarray, lattice: Lattice) -> np.ndarray:
+    """Origin shift from the three mean phases ``psi = -2 pi g_k . delta`` (mod 2 pi), taken as
+    the representative nearest zero: the lens nearest to the seed origin becomes lens (0, 0)."""
+    g = fundamental_frequencies(lattice)
     # Two fundamentals fix delta modulo the lattice; pick the representative nearest zero.
     delta0 = np.linalg.solve(g[:2], -psi[:2] / (2.0 * np.pi))
-    basis = seed.basis
+    basis = lattice.basis
     candidates = [delta0 - basis @ np.array([a, b]) for a in (-1, 0, 1) for b in (-1, 0, 1)]
     delta = min(candidates, key=lambda d: float(d @ d))
     # With the ambiguity resolved, refine with all three phases.
@@ -210,8 +243,8 @@ def fit_lattice(white: np.ndarray, seed: Lattice, *, black_level: float = 168.0,
         Raw white image (uint16 counts, or float). Bayer channels may have different gains.
     seed : Lattice
         Starting lattice, e.g. ``CameraModel.from_metadata(meta).lattice``. It may be off by
-        up to about 4 px in origin (less than half a pitch: the fitted origin is the centre of
-        the lens nearest to the seed origin), 0.5 % in pitch and a few mrad in rotation.
+        by up to about 4 px in origin (less than half a pitch: the fitted origin is the centre
+        of the lens nearest to the seed origin), about 10 % in pitch and 0.05 rad in rotation.
     black_level : float, keyword-only
     min_relative_amplitude : float, keyword-only
         Blocks whose fundamental amplitude is below this fraction of the median (vignetted
@@ -235,20 +268,32 @@ def fit_lattice(white: np.ndarray, seed: Lattice, *, black_level: float = 168.0,
     if not (3.0 <= seed.pitch_px <= _BLOCK_PX / 4):
         raise CalibrationError(f"seed pitch {seed.pitch_px:.3f} px is outside the supported 3..16 px")
     image = balance_channels(white, black_level=black_level)
-    centres, phases, amps = _block_phases(image, seed)
+    centres, z, grid = _demodulate(image, seed)
+    phases, amps = np.angle(z), np.abs(z)
     g_seed = fundamental_frequencies(seed)
 
     amp = amps.mean(axis=1)
     bright = amp > min_relative_amplitude * np.median(amp)
     radius = np.hypot(centres[:, 0], centres[:, 1])
     central = bright & (radius <= _STAGE_RADII_PX[0])
-    if central.sum() < 4:
+    # Modulation depth at the seed's fundamentals: amplitude over the window-weighted mean.
+    # Micro-image patterns give tens of percent; noise or a wrong pitch gives well under 1 %.
+    near = radius <= _STAGE_RADII_PX[0]
+    window_sum = (_BLOCK_PX * 0.5) ** 2
+    level = max(float(np.mean(image[_central_slices(image.shape, seed)])), 1e-12)
+    modulation = float(np.median(amp[near])) / window_sum / level if near.any() else 0.0
+    if central.sum() < 4 or modulation < _MIN_MODULATION:
         raise CalibrationError(
-            "the white image shows no micro-image pattern around the seed origin; check that "
-            "it is a white image of this camera and that the seed lattice comes from its metadata")
+            f"the white image shows no micro-image pattern at the seed lattice's pitch and rotation "
+            f"({seed.pitch_px:.3f} px) around its origin (modulation {modulation:.2%}); check that it "
+            "is a white image of this camera, exposed, and that the seed comes from its metadata")
 
-    p = np.array([0.0, 0.0, seed.pitch_px, seed.rotation_rad, seed.scale_y])
-    p[:2] = _initial_shift(phases[central], amps[central], seed)
+    coarse = _coarse_frequencies(z, grid, central, seed)
+    p = np.array([0.0, 0.0, coarse.pitch_px, coarse.rotation_rad, coarse.scale_y])
+    # Mean central phase once the coarse frequency ramp is taken out: -2 pi g_k . delta.
+    ramp = _model_phases(p, seed, g_seed, centres[central])
+    psi = np.angle(np.sum(z[central] * np.exp(-1j * ramp), axis=0))
+    p[:2] = _initial_shift(psi, coarse)
     weights = amps / np.median(amps[bright])
     for stage_radius in _STAGE_RADII_PX:
         use = bright & (radius <= stage_radius)
@@ -346,9 +391,11 @@ def _centroid_statistics(image: np.ndarray, lattice: Lattice) -> dict:
     ok = np.isfinite(dist)
     outlier = ok & (dist > 1.0)
     keep = ok & ~outlier
-    if not keep.any():
-        raise CalibrationError("no micro-image centroid agrees with the fitted lattice; "
-                               "the white image does not match the seed")
+    if keep.sum() < 0.5 * max(len(dist), 1):
+        raise CalibrationError(
+            f"only {int(keep.sum())} of {len(dist)} micro-image centroids lie within 1 px of the fitted "
+            "lattice, so the fit locked onto something else; check that the white image and the seed "
+            "lattice come from the same camera and zoom")
     dk = dist[keep]
     return dict(n_lenses=int(keep.sum()), centroid_rms_px=float(np.sqrt(np.mean(dk ** 2))),
                 centroid_median_px=float(np.median(dk)), centroid_p95_px=float(np.percentile(dk, 95)),
