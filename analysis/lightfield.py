@@ -31,14 +31,14 @@ from .image_grid import ImageGrid
 TABLE_FORMAT_VERSION = 1
 
 # Empty lens sites kept around the lattice so that shifted samples near the edge still land
-# on the site grid (shifts are at most about two lenses for alpha in 0.98 ... 1.02).
-_SITE_PAD = 3
+# on the site grid (the simulated f/2 camera shifts by up to about 4 lenses over 0.987 ... 1.013).
+_SITE_PAD = 5
 
 # Rows of the sensor handled per step while building, to bound memory.
 _BUILD_ROWS = 256
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class LightFieldTable:
     """Look-up table from green sensor pixels to lens ``(s, t)`` and aperture ``(u, v)``.
 
@@ -56,7 +56,8 @@ class LightFieldTable:
         Main-lens aperture point seen by each sample, metres from the optical axis (upright frame):
         ``-(offset from the micro-image centre) * optics.aperture_m_per_px``.
     weight : ndarray of shape (N,), float32
-        Response of the sample to unit scene radiance (normalised white image, or ``cos^4``).
+        Response of the sample to unit scene radiance (white image, or ``cos^4``), divided by
+        its median over the table.
     lens_ij : ndarray of shape (L, 2), int32
         Lattice index ``(i, j)`` of each lens.
     lens_xy_m : ndarray of shape (L, 2), float64
@@ -132,15 +133,18 @@ class LightFieldTable:
         return inv[0, 0] * sx_m + inv[0, 1] * sy_m, inv[1, 0] * sx_m + inv[1, 1] * sy_m
 
 
-def build_table(calibration: Any, *, rim_px: float = 1.0, min_weight: float = 0.05,
-                grid_oversample: float = 1.0) -> LightFieldTable:
+def build_table(calibration: Any, *, model: CameraModel | None = None, rim_px: float = 1.0,
+                min_weight: float = 0.05, grid_oversample: float = 1.0) -> LightFieldTable:
     """Build the look-up table of a calibration (its fitted lattice and its white image).
 
     Parameters
     ----------
     calibration : analysis.calibration.Calibration
-        Anything with ``.model`` (:class:`CameraModel`, fitted lattice) and ``.devignetting``
-        (float32 (H, W), the normalised white image).
+        Has ``.model`` (:class:`CameraModel` with the fitted lattice) and ``.devignetting``
+        (float32 (H, W), the white image scaled to 0 ... 1).
+    model : CameraModel, optional
+        The exposure's model, when its optics (exit pupil, aperture) differ from the white
+        image's; its lattice is replaced by the calibration's fitted one.
     rim_px, min_weight, grid_oversample
         As in :func:`build_table_from_model`.
 
@@ -148,7 +152,8 @@ def build_table(calibration: Any, *, rim_px: float = 1.0, min_weight: float = 0.
     -------
     LightFieldTable
     """
-    return build_table_from_model(calibration.model, getattr(calibration, "devignetting", None),
+    fitted = calibration.model if model is None else model.with_lattice(calibration.model.lattice)
+    return build_table_from_model(fitted, calibration.devignetting,
                                   rim_px=rim_px, min_weight=min_weight, grid_oversample=grid_oversample)
 
 
@@ -162,8 +167,11 @@ def build_table_from_model(model: CameraModel, devignetting: np.ndarray | None =
     model : CameraModel
         Sensor size, micro-image lattice (fitted, ideally) and optics.
     devignetting : ndarray of shape (H, W), float, optional
-        Normalised white image. It becomes the samples' weights; pixels below ``min_weight``
-        are left out. Without it the weights are ``cos^4`` of the ray angle (thin lens).
+        White image scaled to 0 ... 1 (``(white - black) / (white_level - black)``). It becomes
+        the samples' weights; pixels below ``min_weight`` are left out (gaps between
+        micro-images, dead pixels). Without it the weights are ``cos^4`` of the ray angle
+        (thin lens). Either way the weights are then divided by their median, so refocused
+        values read as raw DN of a typical pixel.
     rim_px : float
         Pixels farther than ``micro_image_radius_px - rim_px`` from their micro-image centre
         are left out: near the rim, light from the neighbouring lens leaks in (crosstalk).
@@ -247,6 +255,8 @@ def build_table_from_model(model: CameraModel, devignetting: np.ndarray | None =
     sx, sy = model.lens_plane_position_m(lens_ij[:, 0], lens_ij[:, 1])
     lens_xy = np.stack([sx, sy], axis=1).astype(np.float64)
 
+    weight = np.concatenate(parts["w"])[order]
+    weight /= np.median(weight)
     basis_m = model.lattice.basis * (optics.pixel_pitch_m / optics.projection_factor)
     grid = default_grid(lens_xy, basis_m, oversample=grid_oversample)
     return LightFieldTable(
@@ -255,7 +265,7 @@ def build_table_from_model(model: CameraModel, devignetting: np.ndarray | None =
         lens=lens.astype(np.int32).reshape(-1),
         u_m=np.concatenate(parts["u"])[order].astype(np.float32),
         v_m=np.concatenate(parts["v"])[order].astype(np.float32),
-        weight=np.concatenate(parts["w"])[order].astype(np.float32),
+        weight=weight.astype(np.float32),
         lens_ij=lens_ij, lens_xy_m=lens_xy, basis_m=np.asarray(basis_m, dtype=np.float64),
         aperture_radius_m=float(radius * k_ap), micro_image_radius_px=float(radius),
         rim_px=float(rim_px), black_level=float(model.black_level), grid=grid)

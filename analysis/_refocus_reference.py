@@ -1,0 +1,85 @@
+"""Slow, readable numpy version of the refocus, to check the numba kernels on small inputs.
+
+It works in lens-plane metres throughout and finds each point's triangle as its three nearest
+lens sites (the Delaunay triangle of a hexagonal lattice), with barycentric weights from a
+3 x 3 solve, so it shares no index arithmetic with :mod:`analysis._refocus_kernels`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .image_grid import ImageGrid
+from .lightfield import LightFieldTable
+
+
+def _triangles(table: LightFieldTable, sx: np.ndarray, sy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lattice indices (n, 3, 2) of the 3 nearest lens sites of points (m) and barycentric weights (n, 3)."""
+    fi, fj = table.lattice_coordinates(sx, sy)
+    base_i, base_j = np.floor(fi).astype(np.int64), np.floor(fj).astype(np.int64)
+    cand = []
+    for di in (-1, 0, 1, 2):
+        for dj in (-1, 0, 1, 2):
+            cand.append(np.stack([base_i + di, base_j + dj], axis=-1))
+    cand = np.stack(cand, axis=1)                                   # (n, 16, 2)
+    pos = cand.astype(np.float64) @ table.basis_m.T                 # (n, 16, 2) metres
+    dist = np.hypot(pos[..., 0] - sx[:, None], pos[..., 1] - sy[:, None])
+    nearest = np.argsort(dist, axis=1, kind="stable")[:, :3]
+    tri = np.take_along_axis(cand, nearest[..., None], axis=1)      # (n, 3, 2)
+    corners = np.take_along_axis(pos, nearest[..., None], axis=1)   # (n, 3, 2)
+    # Solve [x_k; y_k; 1] w = [x; y; 1] for each point.
+    mat = np.stack([corners[..., 0], corners[..., 1], np.ones(corners.shape[:2])], axis=1)
+    rhs = np.stack([sx, sy, np.ones_like(sx)], axis=1)[..., None]
+    weights = np.linalg.solve(mat, rhs)[..., 0]
+    return tri, weights
+
+
+def splat_reference(table: LightFieldTable, values: np.ndarray, alpha: float) -> dict[tuple[int, int], float]:
+    """Sum of ``barycentric weight * value`` per lens site ``(i, j)`` for one alpha (all samples)."""
+    c = 1.0 / alpha - 1.0
+    sx = table.lens_xy_m[table.lens, 0] + table.u_m.astype(np.float64) * c
+    sy = table.lens_xy_m[table.lens, 1] + table.v_m.astype(np.float64) * c
+    tri, w = _triangles(table, sx, sy)
+    sums: dict[tuple[int, int], float] = {}
+    for n in range(values.size):
+        if values[n] == 0:
+            continue
+        for k in range(3):
+            key = (int(tri[n, k, 0]), int(tri[n, k, 1]))
+            sums[key] = sums.get(key, 0.0) + w[n, k] * float(values[n])
+    return sums
+
+
+def refocus_reference(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray, grid: ImageGrid, *,
+                      offset: float, threshold: float, min_coverage: float,
+                      keep: np.ndarray | None = None) -> np.ndarray:
+    """Refocused stack (A, H, W) float64, by the recipe of :mod:`analysis.refocus`.
+
+    ``offset`` is black level plus background; samples with ``raw - offset <= threshold`` are
+    dropped from the numerator; ``keep`` (bool over samples) restricts both sums.
+    """
+    keep = np.ones(table.n_samples, dtype=bool) if keep is None else keep
+    values = image.reshape(-1)[table.pixel_index].astype(np.float64) - offset
+    numerator = np.where(keep & (values > threshold), values, 0.0)
+    weights = np.where(keep, table.weight.astype(np.float64), 0.0)
+    cols, rows = np.meshgrid(np.arange(grid.width), np.arange(grid.height))
+    px, py = grid.to_lens_plane(cols.reshape(-1), rows.reshape(-1))
+    tri, bary = _triangles(table, px, py)
+    out = np.zeros((len(alphas), grid.height, grid.width))
+    for a, alpha in enumerate(alphas):
+        num = splat_reference(table, numerator, alpha)
+        den = splat_reference(table, weights, alpha)
+        positive = np.array([d for d in den.values() if d > 0])
+        floor = min_coverage * np.median(positive)
+        site_value = {key: num.get(key, 0.0) / d for key, d in den.items() if d >= floor}
+        flat = np.zeros(px.size)
+        for n in range(px.size):
+            total, wsum = 0.0, 0.0
+            for k in range(3):
+                key = (int(tri[n, k, 0]), int(tri[n, k, 1]))
+                if key in site_value:
+                    total += bary[n, k] * site_value[key]
+                    wsum += bary[n, k]
+            flat[n] = total / wsum if wsum > 1e-6 else 0.0
+        out[a] = flat.reshape(grid.height, grid.width)
+    return out
