@@ -20,7 +20,7 @@ from .raw12 import pack12, unpack12
 _TOC_VERSION = {"major": 1, "minor": 0, "provisionalDate": "2011-08-03"}
 
 
-@dataclass
+@dataclass(eq=False)
 class Exposure:
     """A raw exposure.
 

@@ -7,16 +7,16 @@ from __future__ import annotations
 import hashlib
 import logging
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping
+from typing import Iterator, Mapping
 
 import numpy as np
 
 from .atomic_write import write_all_atomic
 from .errors import FormatError, MetadataError, MissingFileError, NoWhiteImageError, RawSizeError
 from .frame_metadata import check_packing, image_size, lookup, master_txt_bytes, parse_txt, unwrap_master
-from .lfp import build_container, parse_json, read_container_file, sha1_ref
+from .lfp import SECTION_HEADER_BYTES, Section, build_container, parse_json, read_container_file, sha1_ref
 from .raw12 import pack12, unpack12
 
 log = logging.getLogger(__name__)
@@ -26,21 +26,70 @@ _BUNDLE_RE = re.compile(r"data\.C\.(\d+)")
 _MOD_RE = re.compile(r"(MOD_\d+)\.(RAW|TXT)", re.IGNORECASE)
 
 
-@dataclass
+@dataclass(frozen=True)
+class RawSource:
+    """Where a white image's packed raw bytes lie: ``length`` bytes at ``offset`` of ``path``."""
+
+    path: Path
+    offset: int
+    length: int
+
+    def read(self) -> bytes:
+        with open(self.path, "rb") as fh:
+            fh.seek(self.offset)
+            data = fh.read(self.length)
+        if len(data) != self.length:
+            raise RawSizeError(f"{self.path} ended after {len(data)} of the {self.length} raw bytes expected "
+                               f"at offset {self.offset}; the file changed or was cut short since it was listed")
+        return data
+
+
+@dataclass(init=False, eq=False)
 class WhiteImage:
-    """One white image: packed raw bytes and the metadata of its ``.TXT``."""
+    """One white image: packed raw bytes and the metadata of its ``.TXT``.
+
+    A camera holds some 60 white images of 16 MB each, so `load_white_images` does not keep
+    their raws in memory: ``raw`` is read from its file each time it is asked for (give
+    ``raw_source``); a white image built from bytes keeps them.
+    """
 
     name: str
     metadata: dict
-    private_metadata: dict = field(default_factory=dict)
-    raw: bytes = b""
+    private_metadata: dict
+
+    def __init__(self, name: str, metadata: dict, private_metadata: dict | None = None,
+                 raw: bytes | None = None, *, raw_source: RawSource | None = None,
+                 sha1: str | None = None) -> None:
+        if (raw is None) == (raw_source is None):
+            raise ValueError("give a white image either its raw bytes or its raw_source, not both or neither")
+        self.name = name
+        self.metadata = metadata
+        self.private_metadata = dict(private_metadata or {})
+        self._raw = None if raw is None else bytes(raw)
+        self.raw_source = raw_source
+        self._sha1 = sha1
+
+    @property
+    def raw(self) -> bytes:
+        """The packed 12-bit raw bytes (read from ``raw_source`` on each access if not in memory)."""
+        if self._raw is not None:
+            return self._raw
+        assert self.raw_source is not None
+        return self.raw_source.read()
+
+    @raw.setter
+    def raw(self, value: bytes) -> None:
+        self._raw, self.raw_source, self._sha1 = bytes(value), None, None
+
+    @property
+    def raw_length(self) -> int:
+        return len(self._raw) if self._raw is not None else self.raw_source.length  # type: ignore[union-attr]
 
     @classmethod
     def from_image(cls, name: str, image: np.ndarray, metadata: dict,
                    private_metadata: dict | None = None) -> "WhiteImage":
         """Pack a uint16 image (values 0..4095) into a white image."""
-        return cls(name=name, metadata=metadata, private_metadata=dict(private_metadata or {}),
-                   raw=pack12(image))
+        return cls(name, metadata, private_metadata, raw=pack12(image))
 
     @property
     def serial(self) -> str | None:
@@ -64,8 +113,10 @@ class WhiteImage:
 
     @property
     def sha1(self) -> str:
-        """Hex SHA-1 of the packed raw bytes."""
-        return hashlib.sha1(self.raw).hexdigest()
+        """Hex SHA-1 of the packed raw bytes (computed once)."""
+        if self._sha1 is None:
+            self._sha1 = hashlib.sha1(self.raw).hexdigest()
+        return self._sha1
 
     def image(self) -> np.ndarray:
         """The raw image, ndarray of shape (H, W), uint16, values 0..4095.
@@ -130,19 +181,27 @@ def read_bundle(path: str | Path) -> dict[str, bytes]:
     MissingSectionError
         If a ``dataRef`` names no section.
     """
+    return {name: bytes(section.data) for _, name, section in iter_bundle(path)}
+
+
+def iter_bundle(path: str | Path) -> Iterator[tuple[Path, str, Section]]:
+    """Walk a ``data.C.N`` chain: ``(container_path, file_name, section)`` for each file.
+
+    Only one container is held in memory at a time; a section's ``offset`` locates its data
+    (at ``offset + 96``) in ``container_path``. Raises as `read_bundle`.
+    """
     path = Path(path)
-    files: dict[str, bytes] = {}
     seen: list[Path] = []
     current: Path | None = path
     while current is not None:
         if current.resolve() in seen:
             chain = " -> ".join(p.name for p in seen + [current.resolve()])
             raise FormatError(f"backup bundle chain loops ({chain}); the nextFile fields are damaged")
-        seen.append(current.resolve())
         if not current.is_file():
-            raise MissingFileError(f"backup bundle {current} is missing (named by nextFile of "
-                                   f"{seen[-2].name if len(seen) > 1 else 'the caller'}); "
+            named_by = f"named by nextFile of {seen[-1].name}" if seen else "the bundle asked for"
+            raise MissingFileError(f"backup bundle {current} is missing ({named_by}); "
                                    "copy the whole data.C.* set into one folder")
+        seen.append(current.resolve())
         container = read_container_file(current)
         entries = container.toc.get("files")
         if not isinstance(entries, list):
@@ -152,11 +211,10 @@ def read_bundle(path: str | Path) -> dict[str, bytes]:
             if not isinstance(entry, dict) or not isinstance(entry.get("name"), str) \
                     or not isinstance(entry.get("dataRef"), str):
                 raise MetadataError(f"{current.name}: files[{k}] lacks a 'name' or 'dataRef' string")
-            files[entry["name"]] = bytes(container.section(entry["dataRef"]).data)
+            yield current, entry["name"], container.section(entry["dataRef"])
         nxt = container.toc.get("nextFile")
         # nextFile is a bare file name; never follow it out of the folder.
         current = current.parent / Path(nxt.replace("\\", "/")).name if isinstance(nxt, str) and nxt else None
-    return files
 
 
 def write_bundle(files: Mapping[str, bytes | bytearray | memoryview], folder: str | Path, *,
@@ -192,37 +250,27 @@ def write_bundle(files: Mapping[str, bytes | bytearray | memoryview], folder: st
     return write_all_atomic(out)
 
 
-def _pairs_from_named(named: Mapping[str, object], where: str) -> dict[str, dict[str, object]]:
-    """Group ``MOD_nnnn.RAW``/``.TXT`` items by stem (case of the extension ignored)."""
-    pairs: dict[str, dict[str, object]] = {}
-    for name, item in named.items():
-        base = name.replace("\\", "/").rsplit("/", 1)[-1]
-        m = _MOD_RE.fullmatch(base)
-        if m:
-            pairs.setdefault(m.group(1).upper(), {})[m.group(2).upper()] = item
-    for stem in sorted(pairs):
-        missing = {"RAW", "TXT"} - set(pairs[stem])
-        if missing:
-            log.warning("white image %s in %s has no .%s; skipped", stem, where, missing.pop())
-            del pairs[stem]
-    return pairs
+def _mod_key(name: str) -> tuple[str, str] | None:
+    """``("MOD_0003", "RAW")`` for a white-image file name or camera path, else None."""
+    base = name.replace("\\", "/").rsplit("/", 1)[-1]
+    m = _MOD_RE.fullmatch(base)
+    return (m.group(1).upper(), m.group(2).upper()) if m else None
 
 
-def _white(stem: str, raw: bytes, txt: bytes, where: str) -> WhiteImage:
-    metadata, private = parse_txt(txt, what=f"{stem}.TXT in {where}")
-    white = WhiteImage(name=stem, metadata=metadata, private_metadata=private, raw=raw)
+def _check_raw_length(name: str, length: int, metadata: dict, where: str) -> None:
+    check_packing(metadata)
     width, height = image_size(metadata)
-    if len(raw) != width * height * 3 // 2:
-        raise RawSizeError(f"{stem}.RAW in {where} has {len(raw)} bytes, but its .TXT says {width}x{height} "
+    if length != width * height * 3 // 2:
+        raise RawSizeError(f"{name}.RAW in {where} has {length} bytes, but its .TXT says {width}x{height} "
                            f"({width * height * 3 // 2} bytes packed); the file is truncated, copy it again")
-    return white
 
 
 def load_white_images(source: str | Path) -> list[WhiteImage]:
     """All white images in a folder of ``MOD_nnnn.RAW``/``.TXT``, a folder holding ``data.C.0``,
     or a ``data.C.N`` file.
 
-    Pairs lacking one of their files are skipped with a logged warning.
+    Metadata is read at once; raws stay on disk (``WhiteImage.raw_source``) and are read
+    when asked for. Pairs lacking one of their files are skipped with a logged warning.
 
     Returns
     -------
@@ -234,25 +282,46 @@ def load_white_images(source: str | Path) -> list[WhiteImage]:
         If no complete pair is found.
     MetadataError, RawSizeError
         If a pair's ``.TXT`` is not metadata or its ``.RAW`` has the wrong size.
+    FormatError, MissingFileError
+        For a damaged bundle chain (see `read_bundle`).
     """
     source = Path(source)
     if not source.exists():
         raise FileNotFoundError(f"no white-image folder or bundle at {source}")
-    if source.is_file():
-        if _bundle_index(source) is None:
-            raise FormatError(f"{source.name} is not a data.C.N bundle; give it, or a folder of MOD_nnnn files")
-        named: dict[str, object] = dict(read_bundle(source))
-    elif (source / "data.C.0").is_file():
-        named = dict(read_bundle(source / "data.C.0"))
+    raws: dict[str, tuple[RawSource, str | None]] = {}
+    txts: dict[str, bytes] = {}
+    bundle = source if source.is_file() else source / "data.C.0"
+    if source.is_file() and _bundle_index(source) is None:
+        raise FormatError(f"{source.name} is not a data.C.N bundle; give it, or a folder of MOD_nnnn files")
+    if bundle.is_file():
+        for container_path, name, section in iter_bundle(bundle):
+            key = _mod_key(name)
+            if key is None:
+                continue
+            if key[1] == "RAW":
+                raws[key[0]] = (RawSource(container_path, section.offset + SECTION_HEADER_BYTES, section.length),
+                                section.sha1[len("sha1-"):])
+            else:
+                txts[key[0]] = bytes(section.data)
     else:
-        named = {p.name: p for p in source.iterdir() if p.is_file()}
-    pairs = _pairs_from_named(named, str(source))
+        for path in sorted(source.iterdir()):
+            key = _mod_key(path.name)
+            if key is None or not path.is_file():
+                continue
+            if key[1] == "RAW":
+                raws[key[0]] = (RawSource(path, 0, path.stat().st_size), None)
+            else:
+                txts[key[0]] = path.read_bytes()
     whites = []
-    for stem, pair in sorted(pairs.items()):
-        raw, txt = pair["RAW"], pair["TXT"]
-        raw_b = raw.read_bytes() if isinstance(raw, Path) else raw
-        txt_b = txt.read_bytes() if isinstance(txt, Path) else txt
-        whites.append(_white(stem, raw_b, txt_b, str(source)))  # type: ignore[arg-type]
+    for stem in sorted(set(raws) | set(txts)):
+        if stem not in raws or stem not in txts:
+            log.warning("white image %s in %s has no .%s; skipped", stem, source,
+                        "RAW" if stem not in raws else "TXT")
+            continue
+        metadata, private = parse_txt(txts[stem], what=f"{stem}.TXT in {source}")
+        raw_source, sha1 = raws[stem]
+        _check_raw_length(stem, raw_source.length, metadata, str(source))
+        whites.append(WhiteImage(stem, metadata, private, raw_source=raw_source, sha1=sha1))
     if not whites:
         raise NoWhiteImageError(
             f"no white images in {source}: looked for MOD_nnnn.RAW with MOD_nnnn.TXT (as in the camera's "
@@ -270,8 +339,8 @@ def write_white_pair(white: WhiteImage, folder: str | Path) -> tuple[Path, Path]
         If the raw size disagrees with the metadata (nothing is written).
     """
     folder = Path(folder)
-    _white(white.name, white.raw, white_txt_bytes(white.metadata, white.private_metadata), str(folder))
+    raw = white.raw
+    _check_raw_length(white.name, len(raw), white.metadata, str(folder))
     raw_path, txt_path = folder / f"{white.name}.RAW", folder / f"{white.name}.TXT"
-    write_all_atomic({raw_path: white.raw,
-                      txt_path: white_txt_bytes(white.metadata, white.private_metadata)})
+    write_all_atomic({raw_path: raw, txt_path: white_txt_bytes(white.metadata, white.private_metadata)})
     return raw_path, txt_path

@@ -201,3 +201,22 @@ def test_write_white_pair_refuses_wrong_size(white_metadata, tmp_path):
     with pytest.raises(RawSizeError):
         write_white_pair(w, tmp_path)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_loaded_raws_stay_on_disk(white_metadata, tmp_path):
+    whites = [_white(white_metadata, i) for i in range(2)]
+    write_bundle(_camera_files(whites), tmp_path)
+    loaded = load_white_images(tmp_path)
+    for a, b in zip(whites, loaded):
+        assert b.raw_source is not None and b.raw_source.path == tmp_path / "data.C.0"
+        assert b.raw_length == len(a.raw)
+        assert b.sha1 == a.sha1  # from the bundle's dataRef, and equal to the bytes' SHA-1
+        assert b.raw == a.raw and np.array_equal(b.image(), a.image())
+
+
+def test_raw_changed_after_listing(white_metadata, tmp_path):
+    raw_path, _ = write_white_pair(_white(white_metadata, 0), tmp_path)
+    (loaded,) = load_white_images(tmp_path)
+    raw_path.write_bytes(b"\x00" * 10)
+    with pytest.raises(RawSizeError, match="cut short"):
+        loaded.raw
