@@ -13,6 +13,7 @@ import sys
 
 # Modules in service.cli that define commands, in the order `--help` lists them.
 COMMAND_MODULES: list[str] = [
+    "simulate",
     "inspect_cmd",
 ]
 
