@@ -8,6 +8,8 @@ frame and private metadata as ``master.picture.frameArray[0].frame.{metadata, pr
 
 from __future__ import annotations
 
+import math
+import numbers
 from typing import Any
 
 from .errors import FormatError, MetadataError
@@ -80,7 +82,8 @@ def image_size(metadata: dict) -> tuple[int, int]:
     out = []
     for key in ("width", "height"):
         value = lookup(metadata, f"image.{key}")
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value) or value <= 0:
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value) \
+                or value != int(value) or value <= 0:
             raise MetadataError(f"frame metadata field 'image.{key}' is {value!r}, not a positive integer; "
                                 "is this an F01 picture's metadata?")
         out.append(int(value))

@@ -46,8 +46,30 @@ def sha1_ref(data: bytes | bytearray | memoryview) -> str:
 
 
 def json_bytes(obj: Any) -> bytes:
-    """JSON in the camera's layout (tab indents, ``"key" : value``), UTF-8 encoded."""
-    return json.dumps(obj, indent="\t", separators=(",", " : "), ensure_ascii=False).encode("utf-8")
+    """JSON in the camera's layout (tab indents, ``"key" : value``), UTF-8 encoded.
+
+    NumPy scalars and arrays (as a simulator may put in metadata) are written as plain numbers
+    and lists; NaN and infinities are refused, since the camera's readers cannot parse them.
+
+    Raises
+    ------
+    MetadataError
+        If ``obj`` holds something JSON cannot represent.
+    """
+    try:
+        text = json.dumps(obj, indent="\t", separators=(",", " : "), ensure_ascii=False,
+                          allow_nan=False, default=_plain)
+    except (TypeError, ValueError) as exc:
+        raise MetadataError(f"metadata cannot be written as JSON: {exc}; use plain numbers, "
+                            "strings, lists and dicts") from None
+    return text.encode("utf-8")
+
+
+def _plain(obj: Any) -> Any:
+    for method in ("tolist", "item"):  # numpy arrays and scalars, without importing numpy here
+        if callable(getattr(obj, method, None)):
+            return getattr(obj, method)()
+    raise TypeError(f"{type(obj).__name__} is not JSON serializable")
 
 
 def parse_json(data: bytes | bytearray | memoryview, *, what: str) -> Any:

@@ -228,3 +228,36 @@ def test_failed_write_keeps_old_file(real_metadata, tmp_path):
         write_lfp(bad, path)
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["IMG.lfp"]
+
+
+def test_numpy_numbers_in_metadata_are_written_plainly(real_metadata, tmp_path):
+    exp = _small(real_metadata)
+    exp.metadata["image"]["width"] = np.int64(64)
+    exp.metadata["devices"]["lens"]["zoomStep"] = np.int32(950)
+    exp.metadata["devices"]["mla"]["rotation"] = np.float32(0.5)
+    exp.metadata["image"]["color"]["ccmRgbToSrgbArray"] = np.eye(3).ravel()
+    back = read_exposure(write_lfp(exp, tmp_path / "IMG.lfp"))
+    assert back.metadata["image"]["width"] == 64
+    assert back.metadata["devices"]["lens"]["zoomStep"] == 950
+    assert back.metadata["devices"]["mla"]["rotation"] == 0.5
+    assert back.metadata["image"]["color"]["ccmRgbToSrgbArray"] == [1, 0, 0, 0, 1, 0, 0, 0, 1]
+
+
+@pytest.mark.parametrize("value", [float("nan"), object()])
+def test_unwritable_metadata_leaves_nothing(real_metadata, tmp_path, value):
+    exp = _small(real_metadata)
+    exp.metadata["devices"]["lens"]["focalLength"] = value
+    with pytest.raises(MetadataError, match="JSON"):
+        write_lfp(exp, tmp_path / "IMG.lfp")
+    with pytest.raises(MetadataError, match="JSON"):
+        write_raw_pair(exp, tmp_path / "IMG.RAW")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("width", [None, "64", 0, -64, 63.5, float("inf"), True])
+def test_bad_image_size_in_metadata(real_metadata, width):
+    exp = _small(real_metadata)
+    meta = copy.deepcopy(exp.metadata)
+    meta["image"]["width"] = width
+    with pytest.raises(MetadataError, match="image.width"):
+        exposure_from_raw_pair(pack12(exp.image), json.dumps(meta).encode())
