@@ -86,8 +86,8 @@ class Database:
         self._local = threading.local()
         self._all: list[sqlite3.Connection] = []
         self._lock = threading.Lock()
-        with self.write() as conn:
-            conn.executescript(SCHEMA)
+        # executescript commits on its own; the statements are idempotent.
+        self.connection().executescript(SCHEMA)
 
     def connection(self) -> sqlite3.Connection:
         """This thread's connection (autocommit; transactions are explicit)."""

@@ -16,7 +16,6 @@ either the old file or the new one.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import sqlite3
 import threading
@@ -52,18 +51,6 @@ class ExposureRecord:
         return cls(**{name: row[name] for name in cls.__dataclass_fields__})
 
 
-def exposure_sha1(files: Mapping[str, bytes]) -> str:
-    """SHA-1 of an exposure's bytes: the ``.lfp``, or ``.RAW`` followed by ``.TXT``."""
-    digest = hashlib.sha1()
-    for suffix in sorted(files, key=_suffix_order):
-        digest.update(files[suffix])
-    return digest.hexdigest()
-
-
-def _suffix_order(suffix: str) -> int:
-    return {".lfp": 0, ".RAW": 1, ".TXT": 2}[suffix]
-
-
 class Store:
     """Files under ``data_dir`` and their index in the shared :class:`Database`."""
 
@@ -88,18 +75,17 @@ class Store:
         suffixes = [".lfp"] if kind == "lfp" else [".RAW", ".TXT"]
         return [folder / f"{exposure_id}{s}" for s in suffixes]
 
-    def put_raw(self, files: Mapping[str, bytes]) -> tuple[str, str]:
-        """Store an exposure's bytes under their SHA-1; returns ``(exposure_id, kind)``.
+    def put_raw(self, exposure_id: str, files: Mapping[str, bytes]) -> str:
+        """Store an exposure's files under its SHA-1 (that of its raw sensor bytes); returns the kind.
 
         ``files`` maps ``.lfp`` to the container, or ``.RAW`` and ``.TXT`` to the pair.
-        Writing the same bytes again changes nothing.
+        Writing the same exposure again changes nothing.
         """
         kind = "lfp" if ".lfp" in files else "raw"
-        exposure_id = exposure_sha1(files)
         for path in self.raw_paths(exposure_id, kind):
             if not path.exists():
                 write_bytes_atomic(path, files[path.suffix])
-        return exposure_id, kind
+        return kind
 
     def register(self, conn: sqlite3.Connection, exposure_id: str, *, run: str, kind: str,
                  source: str, serial: str | None) -> tuple[ExposureRecord, bool]:
@@ -135,21 +121,21 @@ class Store:
             with h5py.File(tmp, "w") as f:
                 f.attrs["default"] = "entry"
                 f.attrs["creator"] = "plenodust"
-                entry = _nx_group(f, "entry", "NXentry")
+                entry = nx_group(f, "entry", "NXentry")
                 entry.attrs["default"] = "data"
                 entry["title"] = record.id
                 entry["run"] = record.run
                 entry["frame"] = record.frame
-                _write_table(_nx_group(entry, "data", "NXdata"), output.columns)
+                write_table(nx_group(entry, "data", "NXdata"), output.columns)
                 _write_process(entry, output.parameters)
                 if output.curves is not None and output.curve_alpha is not None:
-                    curves = _nx_group(entry, "curves", "NXdata")
+                    curves = nx_group(entry, "curves", "NXdata")
                     curves.attrs["signal"] = "brightness"
                     curves.attrs["axes"] = [".", "alpha"]
                     curves.create_dataset("brightness", data=np.asarray(output.curves, dtype=np.float32))
                     curves.create_dataset("alpha", data=np.asarray(output.curve_alpha, dtype=np.float64))
                 if output.slices is not None and output.slice_alpha is not None:
-                    slices = _nx_group(entry, "slices", "NXdata")
+                    slices = nx_group(entry, "slices", "NXdata")
                     slices.attrs["signal"] = "image"
                     slices.attrs["axes"] = ["alpha", ".", "."]
                     slices.create_dataset("image", data=np.asarray(output.slices, dtype=np.uint8),
@@ -175,7 +161,7 @@ class Store:
     def read_columns(self, exposure_id: str) -> dict[str, np.ndarray]:
         """The particle table of one exposure."""
         with h5py.File(self.result_path(exposure_id), "r") as f:
-            return _read_table(f["entry/data"])
+            return read_table(f["entry/data"])
 
     def read_parameters(self, exposure_id: str) -> dict:
         with h5py.File(self.result_path(exposure_id), "r") as f:
@@ -295,13 +281,13 @@ def _safe_name(name: str) -> str:
     return cleaned.lstrip(".") or "unnamed"
 
 
-def _nx_group(parent: h5py.Group, name: str, nx_class: str) -> h5py.Group:
+def nx_group(parent: h5py.Group, name: str, nx_class: str) -> h5py.Group:
     group = parent.create_group(name)
     group.attrs["NX_class"] = nx_class
     return group
 
 
-def _write_table(group: h5py.Group, columns: Mapping[str, np.ndarray]) -> None:
+def write_table(group: h5py.Group, columns: Mapping[str, np.ndarray]) -> None:
     names = list(columns)
     group.attrs["signal"] = "Z" if "Z" in columns else (names[0] if names else "")
     group.attrs["columns"] = json.dumps(names)
@@ -316,7 +302,7 @@ def _write_table(group: h5py.Group, columns: Mapping[str, np.ndarray]) -> None:
             ds.attrs["units"] = LENGTH_UNITS[name]
 
 
-def _read_table(group: h5py.Group) -> dict[str, np.ndarray]:
+def read_table(group: h5py.Group) -> dict[str, np.ndarray]:
     names = json.loads(group.attrs["columns"])
     out = {}
     for name in names:
@@ -328,7 +314,7 @@ def _read_table(group: h5py.Group) -> dict[str, np.ndarray]:
 
 
 def _write_process(entry: h5py.Group, parameters: dict) -> None:
-    process = _nx_group(entry, "process", "NXprocess")
+    process = nx_group(entry, "process", "NXprocess")
     process["program"] = "plenodust"
     from importlib.metadata import PackageNotFoundError, version
     try:
@@ -361,12 +347,12 @@ def _write_run(path: Path, run: str, table: dict[str, np.ndarray], exposures: li
     with h5py.File(path, "w") as f:
         f.attrs["default"] = "entry"
         f.attrs["creator"] = "plenodust"
-        entry = _nx_group(f, "entry", "NXentry")
+        entry = nx_group(f, "entry", "NXentry")
         entry.attrs["default"] = "data"
         entry["title"] = run
-        _write_table(_nx_group(entry, "data", "NXdata"), table)
+        write_table(nx_group(entry, "data", "NXdata"), table)
         _write_process(entry, exposures[-1]["parameters"] if exposures else {})
-        coll = _nx_group(entry, "exposures", "NXcollection")
+        coll = nx_group(entry, "exposures", "NXcollection")
         coll.create_dataset("id", data=np.array([e["id"] for e in exposures], dtype="S40"))
         coll.create_dataset("frame", data=np.array([e["frame"] for e in exposures], dtype=np.int64))
         coll.create_dataset("particles", data=np.array([e["particles"] for e in exposures], dtype=np.int64))
@@ -377,7 +363,7 @@ def _write_run(path: Path, run: str, table: dict[str, np.ndarray], exposures: li
 
 def _read_run(path: Path) -> tuple[dict[str, np.ndarray], list[dict]]:
     with h5py.File(path, "r") as f:
-        table = _read_table(f["entry/data"])
+        table = read_table(f["entry/data"])
         coll = f["entry/exposures"]
         exposures = [{"id": i.decode(), "frame": int(fr), "particles": int(n), "parameters": json.loads(p)}
                      for i, fr, n, p in zip(coll["id"][()], coll["frame"][()], coll["particles"][()],

@@ -15,6 +15,7 @@ import sys
 COMMAND_MODULES: list[str] = [
     "simulate",
     "inspect_cmd",
+    "camera",
 ]
 
 

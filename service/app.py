@@ -1,0 +1,129 @@
+"""The FastAPI application: ``create_app`` builds it; its lifespan owns workers and watcher.
+
+``create_app(settings)`` is all a deployment needs; tests pass their own settings and,
+where they want, a camera, a store or an executor.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+from fastapi import FastAPI
+from fastapi.responses import FileResponse, RedirectResponse
+from fastapi.staticfiles import StaticFiles
+
+from service.database import Database
+from service.deps import ServiceState
+from service.events import EventBus
+from service.executors import Executor, make_executor
+from service.limits import BodySizeLimit
+from service.metrics import Metrics
+from service.problems import install_problem_handlers
+from service.queue import JobQueue
+from service.routes import calibrations, camera as camera_routes, events, exposures, health, jobs, runs
+from service.runner import JobRunner, RunnerConfig
+from service.settings import Settings, get_settings
+from service.store import Store
+from service.watcher import CameraWatcher, open_camera
+
+log = logging.getLogger(__name__)
+
+STATIC_DIR = Path(__file__).parent / "static"
+
+
+def create_app(settings: Settings | None = None, *, camera: Any = None, store: Store | None = None,
+               executor: Executor | None = None) -> FastAPI:
+    """Build the service.
+
+    Parameters
+    ----------
+    settings : Settings, optional
+        Defaults to the environment (``PLENODUST_*``).
+    camera : object, optional
+        An open camera to watch instead of opening ``settings.camera``.
+    store : Store, optional
+        Storage to use instead of one under ``settings.data_dir`` (its database is used too).
+    executor : Executor, optional
+        Where jobs run, instead of the one ``settings.executor`` names.
+    """
+    settings = settings or get_settings()
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        data_dir = Path(settings.data_dir)
+        db = store.db if store is not None else Database(data_dir / "plenodust.sqlite")
+        the_store = store or Store(data_dir, db)
+        queue = JobQueue(db, capacity=settings.queue_capacity, lease_s=settings.lease_s,
+                         max_attempts=settings.max_attempts, retry_after_s=settings.retry_after_s)
+        bus = EventBus()
+        bus.bind(asyncio.get_running_loop())
+        metrics = Metrics()
+        the_executor = executor or make_executor(settings.executor, workers=settings.workers,
+                                                 warm_up=settings.warm_up)
+        runner = JobRunner(queue, the_store, the_executor, bus, metrics,
+                           RunnerConfig(slots=settings.workers, heartbeat_s=settings.heartbeat_s,
+                                        keep_slices=settings.keep_slices))
+        state = ServiceState(settings=settings, db=db, store=the_store, queue=queue, bus=bus, metrics=metrics,
+                             executor=the_executor, runner=runner, started_at=time.time())
+        if camera is not None or settings.camera != "none":
+            opener = (lambda: camera) if camera is not None else (lambda: open_camera(settings.camera))
+            state.watcher = CameraWatcher(opener, the_store, queue, bus, metrics,
+                                          current_run=lambda: state.current_run, on_queued=runner.wake,
+                                          poll_s=settings.camera_poll_s)
+        app.state.service = state
+        # Jobs whose process died with the last server go back to the queue now.
+        for job in await asyncio.to_thread(queue.requeue_expired):
+            log.info("job %s back to %s after restart", job.id, job.state)
+        tasks: list[asyncio.Task] = []
+        warm_task = asyncio.create_task(the_executor.start(), name="executor-start")
+        tasks.append(warm_task)
+
+        async def start_runner() -> None:
+            await warm_task
+            runner.start()
+
+        tasks.append(asyncio.create_task(start_runner(), name="runner-start"))
+        if state.watcher is not None:
+            tasks.append(asyncio.create_task(state.watcher.run(), name="camera-watcher"))
+        try:
+            yield
+        finally:
+            bus.close()
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            await runner.stop()
+            await the_executor.close()
+            if state.watcher is not None:
+                await asyncio.to_thread(state.watcher.close)
+            if store is None:
+                db.close()
+
+    app = FastAPI(title="plenodust", version="0.1.0", lifespan=lifespan,
+                  description="3D dusty-plasma particle coordinates from single Lytro F01 exposures.")
+    install_problem_handlers(app)
+    app.add_middleware(BodySizeLimit, limit=settings.max_body_bytes)
+    for module in (exposures, jobs, runs, events, camera_routes, calibrations, health):
+        app.include_router(module.router)
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+    @app.get("/", include_in_schema=False)
+    async def dashboard() -> FileResponse:
+        return FileResponse(STATIC_DIR / "index.html")
+
+    @app.get("/favicon.ico", include_in_schema=False)
+    async def favicon() -> RedirectResponse:
+        return RedirectResponse("/static/favicon.svg")
+
+    return app
+
+
+def app_factory() -> FastAPI:
+    """Entry point for ``uvicorn --factory service.app:app_factory``."""
+    return create_app()

@@ -1,0 +1,244 @@
+"""`plenodust process EXPOSURE... --calibration DIR --out FILE`: particle tables from raw exposures.
+
+EXPOSURE is an ``.lfp``, a ``.RAW`` with its ``.TXT`` beside it, or a folder of them (an
+``.lfp`` and a ``.RAW`` of the same name count once, the ``.lfp`` is read). Several
+exposures are one batch: they share the calibration, the look-up table and the compiled
+kernels.
+
+Output:
+
+* one exposure: ``--out FILE.csv`` or ``FILE.h5``;
+* a batch: ``--out FILE.csv``/``FILE.h5`` holds all particles with a ``frame`` column (the
+  exposure's index in the order processed, listed in the summary), or ``--out DIR`` (no
+  such suffix) gets one ``<name>.csv`` (``--format h5``: ``<name>.h5``) per exposure.
+
+``--save-stack`` also writes the refocused images, the sub-aperture image and the brightness
+curves as HDF5 (into the ``.h5`` output, or into ``<out>.stack.h5`` beside a CSV).
+
+A JSON summary (one object per exposure: name, frame, particles, warnings, seconds) goes to
+stdout. Exit status: 0 when every exposure was processed, 1 when some failed (each named
+on stderr), 2 for unusable arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from analysis.errors import AnalysisError
+
+EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
+_TABLE_SUFFIXES = (".csv", ".h5", ".hdf5", ".nxs")
+
+
+def default_cache_dir() -> Path:
+    """``$PLENODUST_CACHE``, else ``~/.cache/plenodust`` (calibrations and look-up tables)."""
+    # The CLI runs without the service's settings; this one variable is its whole configuration.
+    return Path(os.environ.get("PLENODUST_CACHE") or Path.home() / ".cache" / "plenodust")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    from analysis.pipeline import PipelineParams
+
+    d = PipelineParams()
+    p = subparsers.add_parser(
+        "process", help="3D particle coordinates from raw exposures (.lfp, .RAW+.TXT, or folders)",
+        description=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("exposures", nargs="+", type=Path, metavar="EXPOSURE",
+                   help=".lfp, .RAW (with its .TXT beside it), or a folder of them")
+    p.add_argument("--calibration", required=True, type=Path, metavar="DIR",
+                   help="the camera's white images (MOD_nnnn.RAW/.TXT) or a data.C.N bundle")
+    p.add_argument("--out", required=True, type=Path, metavar="FILE",
+                   help="FILE.csv or FILE.h5; for a batch also a folder (one file per exposure)")
+    p.add_argument("--format", choices=("csv", "h5"), default="csv",
+                   help="file type per exposure when --out is a folder (default csv)")
+    p.add_argument("--cache", type=Path, default=None, metavar="DIR",
+                   help="calibration and look-up table cache (default $PLENODUST_CACHE or ~/.cache/plenodust)")
+    p.add_argument("--no-cache", action="store_true", help="neither read nor write the cache")
+    p.add_argument("--save-stack", action="store_true",
+                   help="also write the refocused images, sub-aperture image and brightness curves (HDF5)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    g = p.add_argument_group("refocus")
+    g.add_argument("--alpha-min", type=float, default=d.alpha_min, help=f"default {d.alpha_min}")
+    g.add_argument("--alpha-max", type=float, default=d.alpha_max, help=f"default {d.alpha_max}")
+    g.add_argument("--slices", type=int, default=d.n_slices, help=f"refocused images (default {d.n_slices})")
+    g.add_argument("--depth-range", type=float, nargs=2, metavar=("NEAR_MM", "FAR_MM"), default=None,
+                   help="derive the alpha range from depths (thin-lens model) instead")
+    g.add_argument("--aperture-fraction", type=float, default=d.aperture_fraction,
+                   help=f"central part of the aperture radius for the sub-aperture image (default {d.aperture_fraction})")
+    g.add_argument("--blur-sigma", type=float, default=d.blur_sigma_px,
+                   help=f"Gaussian blur of the sub-aperture image, output pixels (default {d.blur_sigma_px})")
+    g.add_argument("--grid-oversample", type=float, default=d.grid_oversample,
+                   help=f"output pixels per lens row spacing (default {d.grid_oversample})")
+
+    g = p.add_argument_group("detection and depth")
+    g.add_argument("--threshold", type=float, default=None,
+                   help="absolute threshold on the product images (default: from the noise)")
+    g.add_argument("--threshold-sigma", type=float, default=d.threshold_sigma,
+                   help=f"threshold in noise sigmas above the background (default {d.threshold_sigma})")
+    g.add_argument("--min-pixels", type=int, default=d.min_pixels, help=f"default {d.min_pixels}")
+    g.add_argument("--link-radius", type=float, default=d.link_radius_px,
+                   help=f"linking radius across slices, output pixels (default {d.link_radius_px})")
+    g.add_argument("--min-prominence", type=float, default=d.min_prominence,
+                   help=f"a second maximum of a curve counts above this fraction (default {d.min_prominence})")
+
+    g = p.add_argument_group("physical coordinates (default: the metadata's thin-lens model)")
+    g.add_argument("--pixel-size-mm", type=float, default=None, help="object-space size of an output pixel")
+    g.add_argument("--depth-per-alpha-mm", type=float, default=None, help="dZ/dalpha (negative for a normal lens)")
+    g.add_argument("--reference-alpha", type=float, default=d.reference_alpha)
+    g.add_argument("--reference-z-mm", type=float, default=d.reference_z_mm)
+    p.set_defaults(func=run)
+
+
+def params_from_args(args: argparse.Namespace) -> Any:
+    from analysis.pipeline import PipelineParams
+
+    return PipelineParams(
+        alpha_min=args.alpha_min, alpha_max=args.alpha_max, n_slices=args.slices,
+        depth_range_mm=tuple(args.depth_range) if args.depth_range else None,
+        aperture_fraction=args.aperture_fraction, blur_sigma_px=args.blur_sigma,
+        grid_oversample=args.grid_oversample, threshold=args.threshold, threshold_sigma=args.threshold_sigma,
+        min_pixels=args.min_pixels, link_radius_px=args.link_radius, min_prominence=args.min_prominence,
+        pixel_size_mm=args.pixel_size_mm, depth_per_alpha_mm=args.depth_per_alpha_mm,
+        reference_alpha=args.reference_alpha, reference_z_mm=args.reference_z_mm)
+
+
+def expand_exposures(paths: list[Path]) -> list[Path]:
+    """Files to process: files as given, folders expanded to their ``.lfp``/``.RAW`` (sorted),
+    a ``.RAW`` dropped where an ``.lfp`` of the same name sits beside it."""
+    out: list[Path] = []
+    for path in paths:
+        if path.is_dir():
+            found = sorted(q for q in path.iterdir()
+                           if q.is_file() and q.suffix.lower() in (".lfp", ".raw") and not q.name.startswith("MOD_"))
+            lfp_stems = {q.stem.lower() for q in found if q.suffix.lower() == ".lfp"}
+            out.extend(q for q in found if q.suffix.lower() == ".lfp" or q.stem.lower() not in lfp_stems)
+        else:
+            out.append(path)
+    return out
+
+
+class _Calibrations:
+    """Calibrations of a batch, loaded once per camera and zoom/focus setting."""
+
+    def __init__(self, source: Path, cache_dir: Path | None) -> None:
+        self.source, self.cache_dir = source, cache_dir
+        self._loaded: dict[tuple, Any] = {}
+
+    def __call__(self, exposure: Any) -> Any:
+        from analysis.calibration import load_calibration
+
+        lens = exposure.metadata.get("devices", {}).get("lens", {})
+        key = (exposure.serial, lens.get("zoomStep"), lens.get("focusStep"))
+        if key not in self._loaded:
+            self._loaded[key] = load_calibration(self.source, exposure.metadata, serial=exposure.serial,
+                                                 cache_dir=self.cache_dir)
+        return self._loaded[key]
+
+
+def run(args: argparse.Namespace) -> int:
+    from analysis.exposure import read_exposure
+    from analysis.pipeline import combine, process, write_csv, write_hdf5
+
+    try:
+        params = params_from_args(args)
+    except AnalysisError as exc:
+        print(f"plenodust process: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    files = expand_exposures(args.exposures)
+    if not files:
+        print("plenodust process: no .lfp or .RAW exposure found in "
+              + ", ".join(str(p) for p in args.exposures), file=sys.stderr)
+        return EXIT_USAGE
+    if not args.calibration.exists():
+        print(f"plenodust process: calibration {args.calibration} does not exist; give the folder of the "
+              "camera's MOD_nnnn.RAW/.TXT white images or a data.C.N bundle", file=sys.stderr)
+        return EXIT_USAGE
+    out: Path = args.out
+    to_folder = len(files) > 1 and out.suffix.lower() not in _TABLE_SUFFIXES
+    if not to_folder and out.suffix.lower() not in _TABLE_SUFFIXES:
+        print(f"plenodust process: --out {out} must end in .csv or .h5", file=sys.stderr)
+        return EXIT_USAGE
+    if to_folder:
+        out.mkdir(parents=True, exist_ok=True)
+    elif out.parent and not out.parent.exists():
+        out.parent.mkdir(parents=True, exist_ok=True)
+
+    cache_dir = None if args.no_cache else (args.cache or default_cache_dir())
+    calibrations = _Calibrations(args.calibration, cache_dir)
+    bar = _progress_bar(len(files), quiet=args.quiet)
+    results, summary, failed = [], [], 0
+    for index, path in enumerate(files):
+        entry: dict[str, Any] = {"exposure": str(path)}
+        try:
+            exposure = read_exposure(path)
+            report = None if bar is None else (lambda f, i=index: _advance(bar, i + f))
+            result = process(exposure, calibrations(exposure), params, keep_stack=args.save_stack,
+                             progress=report, cache_dir=cache_dir)
+        except (AnalysisError, OSError) as exc:
+            failed += 1
+            message = getattr(exc, "strerror", None) if isinstance(exc, OSError) and not isinstance(
+                exc, AnalysisError) else None
+            print(f"plenodust process: {path}: {message or exc}", file=sys.stderr)
+            entry["error"] = f"{type(exc).__name__}: {exc}"
+            summary.append(entry)
+            continue
+        if to_folder:
+            target = out / f"{path.stem}.{args.format}"
+            _write_one(result, target, save_stack=args.save_stack)
+            entry["out"] = str(target)
+        else:
+            entry["frame"] = len(results)
+            results.append(result)
+        entry.update(particles=len(result), warnings=result.warnings,
+                     seconds=round(result.timings.get("total", float("nan")), 4))
+        summary.append(entry)
+        if to_folder:
+            result.stack = result.subaperture = None  # keep memory to one exposure
+    if bar is not None:
+        bar.close()
+
+    if not to_folder and results:
+        if len(results) == 1:
+            _write_one(results[0], out, save_stack=args.save_stack)
+        elif out.suffix.lower() == ".csv":
+            write_csv(combine(results), out)
+            if args.save_stack:
+                write_hdf5(results, _stack_path(out))
+        else:
+            write_hdf5(results, out)
+    json.dump({"out": str(out), "exposures": summary}, sys.stdout, indent=2)
+    sys.stdout.write("\n")
+    return EXIT_FAILED if failed else EXIT_OK
+
+
+def _stack_path(csv_path: Path) -> Path:
+    return csv_path.with_name(csv_path.stem + ".stack.h5")
+
+
+def _write_one(result: Any, target: Path, *, save_stack: bool) -> None:
+    if target.suffix.lower() == ".csv":
+        result.to_csv(target)
+        if save_stack:
+            result.to_hdf5(_stack_path(target))
+    else:
+        result.to_hdf5(target)
+
+
+def _progress_bar(total: int, *, quiet: bool):
+    if quiet or not sys.stderr.isatty():
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="exposure", file=sys.stderr,
+                bar_format="{l_bar}{bar}| {n:.1f}/{total} [{elapsed}<{remaining}]")
+
+
+def _advance(bar: Any, position: float) -> None:
+    bar.n = position
+    bar.refresh()

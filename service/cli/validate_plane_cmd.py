@@ -1,0 +1,50 @@
+"""`plenodust validate-plane FILE`: how flat a particle layer came out (the paper's check).
+
+Reads the ``X, Y, Z`` columns of a table written by ``plenodust process`` (``.csv`` or
+``.h5``), fits a plane and prints, as JSON: its normal, tilt against the image plane, the RMS
+distance of the particles from it, the mean 3D nearest-neighbour distance, and their ratio.
+Exit status 0, or 2 when the file cannot be used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from analysis.errors import AnalysisError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("validate-plane", help="plane fit, tilt and depth scatter of a particle table",
+                              description=__doc__.split("\n\n", 1)[1])
+    p.add_argument("table", type=Path, metavar="FILE", help="particle table (.csv or .h5) from plenodust process")
+    p.add_argument("--frame", type=int, default=None, help="only this frame of a batch table")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from analysis.coordinates import validate_plane
+    from analysis.pipeline import read_csv, read_hdf5_columns
+
+    try:
+        columns = (read_csv(args.table) if args.table.suffix.lower() == ".csv"
+                   else read_hdf5_columns(args.table))
+        missing = [c for c in ("X", "Y", "Z") if c not in columns]
+        if missing:
+            raise AnalysisError(f"{args.table} has no column(s) {missing}; give a table from plenodust process")
+        keep = np.ones(columns["X"].size, dtype=bool)
+        if args.frame is not None:
+            if "frame" not in columns:
+                raise AnalysisError(f"{args.table} holds one exposure; leave out --frame")
+            keep = columns["frame"] == args.frame
+        report = validate_plane(columns["X"][keep], columns["Y"][keep], columns["Z"][keep])
+    except (AnalysisError, OSError, KeyError, ValueError) as exc:
+        print(f"plenodust validate-plane: {args.table}: {exc}", file=sys.stderr)
+        return 2
+    json.dump(report.to_dict(), sys.stdout, indent=2)
+    sys.stdout.write("\n")
+    return 0

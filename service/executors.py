@@ -1,0 +1,225 @@
+"""Where jobs run: a warm local process pool, or an existing Dask distributed cluster.
+
+Either way the queue stays in SQLite; an executor only turns a :class:`JobTask` into a
+:class:`JobOutput`. A worker that dies mid-job raises :class:`WorkerLost`, so the runner
+gives the job back to the queue instead of failing it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import multiprocessing
+import queue as queue_mod
+import threading
+import uuid
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from typing import Protocol
+
+from service.pipeline_task import run_task, warm_up
+from service.results import JobOutput, JobTask
+
+log = logging.getLogger(__name__)
+
+ProgressCallback = Callable[[float], None]
+
+
+class WorkerLost(Exception):
+    """The process running a job went away; the job should run again elsewhere."""
+
+
+class Executor(Protocol):
+    """What the runner needs from an executor."""
+
+    name: str
+
+    @property
+    def warm(self) -> bool: ...
+
+    async def start(self) -> None: ...
+
+    async def run(self, task: JobTask, progress: ProgressCallback | None = None) -> JobOutput: ...
+
+    async def close(self) -> None: ...
+
+
+# -- local pool ------------------------------------------------------------------------
+
+_progress_queue: multiprocessing.Queue | None = None
+
+
+def _init_worker(progress_queue: multiprocessing.Queue, do_warm: bool) -> None:
+    global _progress_queue
+    _progress_queue = progress_queue
+    if do_warm:
+        warm_up()
+
+
+def _pool_run(task: JobTask, key: str) -> JobOutput:
+    queue = _progress_queue
+
+    def report(fraction: float) -> None:
+        if queue is not None:
+            queue.put((key, float(fraction)))
+
+    return run_task(task, report)
+
+
+def _pool_ping() -> int:
+    import os
+    return os.getpid()
+
+
+class LocalPoolExecutor:
+    """A pool of ``workers`` processes that import the analysis and compile it at start.
+
+    Processes are spawned (not forked) so they never inherit the server's threads.
+    """
+
+    name = "local"
+
+    def __init__(self, workers: int = 1, *, warm_up: bool = True) -> None:
+        self.workers = workers
+        self.do_warm = warm_up
+        self._ctx = multiprocessing.get_context("spawn")
+        self._progress_queue: multiprocessing.Queue = self._ctx.Queue()
+        self._callbacks: dict[str, ProgressCallback] = {}
+        self._pool: ProcessPoolExecutor | None = None
+        self._warm = False
+        self._stop = threading.Event()
+        self._reader: threading.Thread | None = None
+
+    @property
+    def warm(self) -> bool:
+        return self._warm
+
+    def _new_pool(self) -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(self.workers, mp_context=self._ctx, initializer=_init_worker,
+                                   initargs=(self._progress_queue, self.do_warm))
+
+    async def start(self) -> None:
+        self._pool = self._new_pool()
+        self._reader = threading.Thread(target=self._read_progress, name="pool-progress", daemon=True)
+        self._reader.start()
+        await self._warm_pool()
+
+    async def _warm_pool(self) -> None:
+        # One ping per worker: each submit while none is idle starts another process,
+        # whose initializer imports and compiles the analysis.
+        loop = asyncio.get_running_loop()
+        pool = self._pool
+        await asyncio.gather(*(loop.run_in_executor(pool, _pool_ping) for _ in range(self.workers)))
+        self._warm = True
+
+    def _read_progress(self) -> None:
+        while not self._stop.is_set():
+            try:
+                key, fraction = self._progress_queue.get(timeout=0.2)
+            except queue_mod.Empty:
+                continue
+            except (EOFError, OSError, ValueError):
+                return
+            callback = self._callbacks.get(key)
+            if callback is not None:
+                try:
+                    callback(fraction)
+                except Exception:  # a progress report must never stop the reader
+                    log.exception("progress callback failed")
+
+    async def run(self, task: JobTask, progress: ProgressCallback | None = None) -> JobOutput:
+        if self._pool is None:
+            raise RuntimeError("executor not started")
+        key = uuid.uuid4().hex
+        if progress is not None:
+            self._callbacks[key] = progress
+        loop = asyncio.get_running_loop()
+        try:
+            return await loop.run_in_executor(self._pool, _pool_run, task, key)
+        except BrokenProcessPool as exc:
+            await self._replace_pool()
+            raise WorkerLost(f"a worker process died while processing {task.exposure_id}") from exc
+        finally:
+            self._callbacks.pop(key, None)
+
+    async def _replace_pool(self) -> None:
+        old = self._pool
+        self._warm = False
+        self._pool = self._new_pool()
+        if old is not None:
+            old.shutdown(wait=False, cancel_futures=True)
+        await self._warm_pool()
+
+    async def close(self) -> None:
+        self._stop.set()
+        if self._pool is not None:
+            pool, self._pool = self._pool, None
+            await asyncio.to_thread(pool.shutdown, wait=True, cancel_futures=True)
+        if self._reader is not None:
+            self._reader.join(timeout=2)
+        self._progress_queue.close()
+        self._progress_queue.join_thread()
+        self._warm = False
+
+
+# -- Dask ------------------------------------------------------------------------------
+
+def _dask_address(spec: str) -> str:
+    if spec.startswith("dask://"):
+        return "tcp://" + spec[len("dask://"):]
+    return spec
+
+
+class DaskExecutor:
+    """Sends each job to an existing Dask distributed scheduler.
+
+    Workers must be able to import ``plenodust`` and read the data folder at the same path
+    (a shared file system), since tasks carry paths, not bytes. Progress is reported only
+    at the start and end of a job.
+    """
+
+    name = "dask"
+
+    def __init__(self, address: str, *, warm_up: bool = True) -> None:
+        self.address = _dask_address(address)
+        self.do_warm = warm_up
+        self._client = None
+        self._warm = False
+
+    @property
+    def warm(self) -> bool:
+        return self._warm
+
+    async def start(self) -> None:
+        from distributed import Client
+
+        self._client = await Client(self.address, asynchronous=True)
+        if self.do_warm:
+            await self._client.run(warm_up)
+        self._warm = True
+
+    async def run(self, task: JobTask, progress: ProgressCallback | None = None) -> JobOutput:
+        from distributed import KilledWorker
+
+        if self._client is None:
+            raise RuntimeError("executor not started")
+        future = self._client.submit(run_task, task, pure=False, key=f"plenodust-{task.exposure_id[:12]}-"
+                                     f"{uuid.uuid4().hex[:8]}")
+        try:
+            return await future
+        except KilledWorker as exc:
+            raise WorkerLost(f"Dask workers died while processing {task.exposure_id}") from exc
+
+    async def close(self) -> None:
+        if self._client is not None:
+            client, self._client = self._client, None
+            await client.close()
+        self._warm = False
+
+
+def make_executor(spec: str, *, workers: int = 1, warm_up: bool = True) -> Executor:
+    """The executor a ``--executor`` value names: ``local`` or ``dask://HOST:PORT``."""
+    if spec == "local":
+        return LocalPoolExecutor(workers, warm_up=warm_up)
+    return DaskExecutor(spec, warm_up=warm_up)

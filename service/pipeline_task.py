@@ -1,0 +1,120 @@
+"""The work a worker process does for one job: read the exposure, calibrate, run the pipeline.
+
+Runs in a pool process or on a Dask worker, so it takes and returns plain picklable
+objects (:class:`JobTask`, :class:`JobOutput`) and imports the analysis lazily.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Callable
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from service.results import JobOutput, JobTask
+
+log = logging.getLogger(__name__)
+
+# Slices kept for the dashboard's viewer: every n-th of the stack, at most this many.
+MAX_VIEW_SLICES = 12
+# Longest side of a kept slice, in pixels (the viewer does not need full resolution).
+MAX_VIEW_SIDE = 512
+
+
+def read_task_exposure(task: JobTask):
+    """The :class:`analysis.exposure.Exposure` a task points at."""
+    from analysis.exposure import exposure_from_lfp_bytes, exposure_from_raw_pair
+
+    paths = [Path(p) for p in task.raw_paths]
+    if len(paths) == 1:
+        return exposure_from_lfp_bytes(paths[0].read_bytes(), name=paths[0].stem)
+    raw = next(p for p in paths if p.suffix.upper() == ".RAW")
+    txt = next(p for p in paths if p.suffix.upper() == ".TXT")
+    return exposure_from_raw_pair(raw.read_bytes(), txt.read_bytes(), name=raw.stem)
+
+
+def _calibration(calibration_dir: str | None, cache_dir: str | None, metadata: dict, serial: str | None):
+    from analysis.calibration import load_calibration
+    from analysis.errors import NoWhiteImageError
+
+    if calibration_dir is None:
+        raise NoWhiteImageError(
+            f"no white images for camera {serial or '(serial unknown)'}: connect the camera so the "
+            "service pulls them, or upload them with POST /api/v1/calibrations")
+    return load_calibration(calibration_dir, metadata, serial=serial, cache_dir=cache_dir)
+
+
+def _params(parameters: dict | None):
+    from analysis.pipeline import PipelineParams
+
+    if not parameters:
+        return PipelineParams()
+    return PipelineParams(**parameters)
+
+
+def _params_dict(params: object) -> dict:
+    if dataclasses.is_dataclass(params):
+        return {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                for k, v in dataclasses.asdict(params).items()}
+    return dict(vars(params))
+
+
+def _view_slices(stack: np.ndarray, alphas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    # A few slices, shrunk and scaled to 8 bits with one common scale so brightness
+    # compares between slices.
+    step = max(1, int(np.ceil(stack.shape[0] / MAX_VIEW_SLICES)))
+    picked = np.arange(0, stack.shape[0], step)
+    sub = np.asarray(stack[picked], dtype=np.float32)
+    shrink = max(1, int(np.ceil(max(sub.shape[1:]) / MAX_VIEW_SIDE)))
+    if shrink > 1:
+        h, w = (sub.shape[1] // shrink) * shrink, (sub.shape[2] // shrink) * shrink
+        sub = sub[:, :h, :w].reshape(sub.shape[0], h // shrink, shrink, w // shrink, shrink).mean(axis=(2, 4))
+    top = float(np.percentile(sub, 99.9)) if sub.size else 0.0
+    scaled = np.clip(sub / top * 255.0, 0, 255) if top > 0 else np.zeros_like(sub)
+    return scaled.astype(np.uint8), np.asarray(alphas, dtype=np.float64)[picked]
+
+
+def run_task(task: JobTask, progress: Callable[[float], None] | None = None) -> JobOutput:
+    """Process one exposure and return its particle table and what the dashboard shows.
+
+    Raises
+    ------
+    analysis.errors.AnalysisError
+        For an input the pipeline cannot use (bad file, no white image, ...).
+    """
+    from analysis.pipeline import process
+
+    start = time.perf_counter()
+    exposure = read_task_exposure(task)
+    calibration = _calibration(task.calibration_dir, task.calibration_cache_dir, exposure.metadata,
+                               exposure.serial)
+    params = _params(task.parameters)
+    result = process(exposure, calibration, params, keep_stack=task.keep_slices, progress=progress)
+    columns = {name: np.asarray(values) for name, values in result.to_columns().items()}
+    output = JobOutput(columns=columns, parameters=_params_dict(getattr(result, "params", params)))
+    curves = getattr(result, "curves", None)
+    alphas = getattr(result, "alphas", None)
+    if curves is not None and alphas is not None:
+        output.curves = np.asarray(curves, dtype=np.float32)
+        output.curve_alpha = np.asarray(alphas, dtype=np.float64)
+    stack = getattr(result, "stack", None)
+    if task.keep_slices and stack is not None and alphas is not None:
+        output.slices, output.slice_alpha = _view_slices(np.asarray(stack), np.asarray(alphas))
+    output.seconds = time.perf_counter() - start
+    return output
+
+
+@lru_cache(maxsize=1)
+def warm_up() -> float:
+    """Import the analysis and compile its kernels once per process; returns seconds taken."""
+    start = time.perf_counter()
+    import analysis.pipeline  # noqa: F401  (imports numba kernels; cache=True loads them)
+
+    warm = getattr(analysis.pipeline, "warm_up", None)
+    if callable(warm):
+        warm()
+    return time.perf_counter() - start

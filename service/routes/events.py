@@ -1,0 +1,22 @@
+"""``/api/v1/events``: server-sent events for job state changes and new results."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import AsyncIterator
+
+from fastapi import APIRouter
+from fastapi.sse import EventSourceResponse, ServerSentEvent
+
+from service.deps import State
+
+router = APIRouter(prefix="/api/v1", tags=["events"])
+
+
+@router.get("/events", response_class=EventSourceResponse,
+            summary="Server-sent events: 'job' (state, progress), 'result' (new particles), 'camera', 'run'")
+async def events(state: State) -> AsyncIterator[ServerSentEvent]:
+    # A first event tells the client the stream is live (and lets tests wait for it).
+    yield ServerSentEvent(event="hello", raw_data=json.dumps({"run": state.current_run}))
+    async for event in state.bus.subscribe():
+        yield ServerSentEvent(event=event.kind, id=str(event.id), raw_data=json.dumps(event.data))

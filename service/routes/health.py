@@ -1,0 +1,42 @@
+"""``/healthz``, ``/readyz`` and ``/metrics``."""
+
+from __future__ import annotations
+
+import asyncio
+
+from fastapi import APIRouter
+from fastapi.responses import JSONResponse, PlainTextResponse
+
+from service.deps import State
+
+router = APIRouter(tags=["health"])
+
+
+@router.get("/healthz", summary="The process is alive")
+async def healthz() -> dict:
+    return {"status": "ok"}
+
+
+@router.get("/readyz", summary="Database writable, workers warm, camera state")
+async def readyz(state: State) -> JSONResponse:
+    writable = await asyncio.to_thread(state.db.writable)
+    warm = state.executor.warm
+    camera = state.watcher.status() if state.watcher is not None else {"state": "none"}
+    camera_ok = camera["state"] in ("none", "connected", "idle")
+    ready = writable and warm
+    body = {"ready": ready, "database": "writable" if writable else "not writable",
+            "workers": "warm" if warm else "warming", "executor": state.executor.name,
+            "camera": camera["state"], "camera_ok": camera_ok}
+    return JSONResponse(body, status_code=200 if ready else 503)
+
+
+@router.get("/metrics", response_class=PlainTextResponse, summary="Prometheus metrics")
+async def metrics(state: State) -> PlainTextResponse:
+    depth = await asyncio.to_thread(state.queue.depth)
+    gauges = {
+        "plenodust_queue_depth": ("Jobs by state.", {(("state", s),): float(n) for s, n in depth.items()}),
+        "plenodust_queue_capacity": ("Most jobs queued or running at once.", {(): float(state.queue.capacity)}),
+        "plenodust_workers_warm": ("1 when the workers are warm.", {(): 1.0 if state.executor.warm else 0.0}),
+        "plenodust_event_subscribers": ("Open event streams.", {(): float(state.bus.subscribers)}),
+    }
+    return PlainTextResponse(state.metrics.render(gauges), media_type="text/plain; version=0.0.4")

@@ -1,0 +1,63 @@
+"""``/api/v1/runs``: runs, their exposures, and all their particles with a ``frame`` column."""
+
+from __future__ import annotations
+
+import asyncio
+
+from fastapi import APIRouter, Body, Request
+from fastapi.responses import FileResponse, Response
+
+from service.deps import ApiKey, State
+from service.problems import Problem
+from service.settings import valid_run_name
+from service.tables import TableFormat, choose_format, table_response
+
+router = APIRouter(prefix="/api/v1/runs", tags=["runs"])
+
+
+@router.get("", summary="Runs, most recent first")
+async def list_runs(state: State) -> dict:
+    return {"current": state.current_run, "items": await asyncio.to_thread(state.store.runs)}
+
+
+@router.get("/current", summary="The run new camera shots are filed under")
+async def get_current_run(state: State) -> dict:
+    return {"name": state.current_run}
+
+
+@router.put("/current", dependencies=[ApiKey], summary="Start filing camera shots under another run")
+async def set_current_run(state: State, name: str = Body(..., embed=True)) -> dict:
+    if not valid_run_name(name):
+        raise Problem(422, "Invalid run name", f"{name!r}: use letters, digits, '.', '_' or '-' (at most 64)",
+                      kind="invalid-run-name")
+    await asyncio.to_thread(state.db.set_value, "current_run", name)
+    state.bus.publish("run", {"current": name})
+    return {"name": name}
+
+
+def _known_run(state: State, run: str) -> None:
+    if not valid_run_name(run) or not state.db.read("SELECT 1 FROM exposures WHERE run = ? LIMIT 1", (run,)):
+        raise Problem(404, "Not found", f"no run {run!r}; GET /api/v1/runs lists them", kind="run-not-found")
+
+
+@router.get("/{run}/exposures", summary="Exposures of a run with their job state")
+async def run_exposures(run: str, state: State) -> dict:
+    _known_run(state, run)
+    return {"run": run, "items": await asyncio.to_thread(state.store.run_exposures, run)}
+
+
+@router.get("/{run}/particles", summary="All particles of a run, with a frame column",
+            responses={200: {"content": {"text/csv": {}, "application/x-hdf5": {}}}})
+async def run_particles(run: str, request: Request, state: State, format: TableFormat | None = None) -> Response:
+    fmt = choose_format(request, format)
+    _known_run(state, run)
+    if fmt == "h5":
+        path = state.store.run_path(run)
+        if not path.exists():
+            raise Problem(409, "No result yet", f"run {run!r} has no processed exposure yet", kind="no-result")
+        # The run file itself: NeXus, with the parameters of every frame.
+        return FileResponse(path, media_type="application/x-hdf5", filename=f"{run}.nxs")
+    columns = await asyncio.to_thread(state.store.read_run_columns, run)
+    if columns is None:
+        raise Problem(409, "No result yet", f"run {run!r} has no processed exposure yet", kind="no-result")
+    return table_response(columns, fmt, meta={"run": run}, filename=run)
