@@ -264,11 +264,14 @@ class SimulatedCamera:
         self._not_ready = 0
         self.commands: list[bytes] = []  # every CDB served, for tests
 
-    def reboot(self) -> None:
-        """Forget the loaded content and be "not ready" for a while, as after a crash."""
+    def reboot(self, *, not_ready: int | None = None) -> None:
+        """Forget the loaded content and be "not ready" for a while, as after a crash.
+
+        ``not_ready`` TEST UNIT READY commands fail (default: ``not_ready_after_reset``).
+        """
         self.loaded = None
         self.loaded_path = None
-        self._not_ready = self.not_ready_after_reset
+        self._not_ready = self.not_ready_after_reset if not_ready is None else not_ready
 
     def handle(self, cdb: bytes, *, data_out: bytes | None = None,
                data_in_length: int = 0) -> tuple[bool, bytes | memoryview]:

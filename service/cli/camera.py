@@ -101,7 +101,7 @@ class _Bars:
             self.close()
             self.path = path
             self.bar = tqdm(total=total, desc=path.rsplit("\\", 1)[-1], unit="B", unit_scale=True,
-                            unit_divisor=1024, leave=False, file=sys.stderr)
+                            unit_divisor=1024, leave=False, file=sys.stderr, disable=None)
         self.bar.update(done - self.bar.n)
 
     def close(self) -> None:

@@ -14,6 +14,8 @@ import sys
 # Modules in service.cli that define commands, in the order `--help` lists them.
 COMMAND_MODULES: list[str] = [
     "simulate",
+    "process_cmd",
+    "validate_plane_cmd",
     "inspect_cmd",
     "camera",
 ]
