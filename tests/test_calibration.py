@@ -1,0 +1,277 @@
+"""Calibration from white images: lattice fit against the simulator's truth, white-image choice,
+devignetting map and the on-disk cache."""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from analysis.calibration import (Calibration, cache_path, load_calibration, read_calibration,
+                                  save_calibration, select_white_image)
+from analysis.camera_model import CameraModel, Lattice
+from analysis.errors import CalibrationError, CameraMismatchError, NoWhiteImageError
+from analysis.lattice_fit import balance_channels, fit_lattice, lens_centroids
+from analysis.sim_camera import SimulatedLens, simulated_camera_metadata, simulated_private_metadata
+from analysis.simulate import render_white_image
+from analysis.whites import WhiteImage, write_white_pair
+
+SIZE = 800
+SERIAL = "A202160042"
+
+
+def _truth_model(size: int = SIZE) -> CameraModel:
+    """Metadata model whose rendered lattice differs from the metadata (as a real one does)."""
+    model = CameraModel.from_metadata(simulated_camera_metadata(size=size))
+    lat = model.lattice
+    return model.with_lattice(lat.with_changes(origin_x=lat.origin_x + 0.37, origin_y=lat.origin_y - 0.21,
+                                               rotation_rad=0.0031, scale_y=1.0007))
+
+
+def _mean_centre_error(fitted: Lattice, truth: Lattice, size: int) -> float:
+    ij, xy = truth.centres(size, size)
+    fx, fy = fitted.centre(ij[:, 0], ij[:, 1])
+    return float(np.mean(np.hypot(fx - xy[:, 0], fy - xy[:, 1])))
+
+
+@pytest.fixture(scope="module")
+def truth_model() -> CameraModel:
+    return _truth_model()
+
+
+@pytest.fixture(scope="module")
+def white_800(truth_model) -> np.ndarray:
+    return render_white_image(truth_model, seed=11)
+
+
+# --- lattice fit ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("dx, dy, pitch_rel, rot_rad", [
+    (2.7, -1.9, 0.002, -0.001),
+    (-3.8, 1.2, -0.002, 0.001),
+    (0.4, 3.5, 0.004, 0.0),
+])
+def test_fit_recovers_lattice_from_perturbed_seed(truth_model, white_800, dx, dy, pitch_rel, rot_rad):
+    truth = truth_model.lattice
+    seed = truth.with_changes(origin_x=truth.origin_x + dx, origin_y=truth.origin_y + dy,
+                              pitch_px=truth.pitch_px * (1 + pitch_rel),
+                              rotation_rad=truth.rotation_rad + rot_rad, scale_y=1.0)
+    fit = fit_lattice(white_800, seed, black_level=truth_model.black_level)
+    got = fit.lattice
+    assert _mean_centre_error(got, truth, SIZE) < 0.05
+    assert got.origin_x == pytest.approx(truth.origin_x, abs=0.03)
+    assert got.origin_y == pytest.approx(truth.origin_y, abs=0.03)
+    assert got.pitch_px == pytest.approx(truth.pitch_px, rel=2e-5)
+    assert got.rotation_rad == pytest.approx(truth.rotation_rad, abs=1e-4)
+    assert got.scale_y == pytest.approx(truth.scale_y, abs=1e-4)
+    assert got.scale_x == seed.scale_x
+    assert isinstance(got.pitch_px, float)
+    # Centroids scatter around the fitted centres without bias; nearly all lenses are measured.
+    assert fit.n_lenses > 0.95 * len(truth.lens_indices(SIZE, SIZE, margin_px=truth.pitch_px))
+    assert fit.centroid_rms_px < 0.2
+    assert np.hypot(*fit.centroid_bias_px) < 0.01
+    assert fit.rms_px < 0.05
+
+
+def test_fit_ignores_bayer_gains(truth_model):
+    white = render_white_image(truth_model, seed=5, responses={"r": 0.3, "g": 1.0, "b": 0.55})
+    truth = truth_model.lattice
+    seed = truth.with_changes(origin_x=truth.origin_x - 2.0, pitch_px=truth.pitch_px * 1.002)
+    fit = fit_lattice(white, seed)
+    assert _mean_centre_error(fit.lattice, truth, SIZE) < 0.05
+
+
+def test_origin_is_the_lens_nearest_the_seed_origin(truth_model, white_800):
+    # A seed one lens step (plus a little) away labels that lens (0, 0).
+    truth = truth_model.lattice
+    bx, by = truth.centre(1, 0)
+    seed = truth.with_changes(origin_x=bx + 1.0, origin_y=by - 0.8)
+    got = fit_lattice(white_800, seed).lattice
+    assert (got.origin_x, got.origin_y) == pytest.approx((bx, by), abs=0.03)
+    assert _mean_centre_error(got.with_changes(origin_x=truth.origin_x, origin_y=truth.origin_y),
+                              truth, SIZE) < 0.05
+
+
+def test_fit_refuses_an_image_without_micro_images(truth_model):
+    rng = np.random.default_rng(0)
+    flat = (168 + rng.poisson(1500, size=(SIZE, SIZE))).astype(np.uint16)
+    with pytest.raises(CalibrationError, match="no micro-image pattern"):
+        fit_lattice(flat, truth_model.lattice)
+
+
+def test_fit_refuses_a_seed_of_another_pitch(truth_model, white_800):
+    seed = truth_model.lattice.with_changes(pitch_px=truth_model.lattice.pitch_px * 1.4)
+    with pytest.raises(CalibrationError):
+        fit_lattice(white_800, seed)
+
+
+def test_fit_refuses_a_tiny_image(truth_model):
+    with pytest.raises(CalibrationError, match="too small"):
+        fit_lattice(np.zeros((64, 64), np.uint16), truth_model.lattice)
+
+
+def test_centroids_sit_on_the_true_centres(truth_model, white_800):
+    image = balance_channels(white_800, black_level=truth_model.black_level)
+    assert image.dtype == np.float32
+    _, predicted, measured = lens_centroids(image, truth_model.lattice)
+    d = np.hypot(*(measured - predicted).T)
+    assert np.median(d) < 0.1
+    assert np.abs((measured - predicted).mean(axis=0)).max() < 0.01
+
+
+@pytest.mark.slow
+def test_full_size_fit():
+    model = _truth_model(3280)
+    white = render_white_image(model, seed=2)
+    truth = model.lattice
+    seed = truth.with_changes(origin_x=truth.origin_x + 3.0, origin_y=truth.origin_y - 2.0,
+                              pitch_px=truth.pitch_px * 0.998, rotation_rad=truth.rotation_rad + 0.001)
+    fit = fit_lattice(white, seed)
+    assert _mean_centre_error(fit.lattice, truth, 3280) < 0.05
+    assert fit.n_lenses > 120_000
+
+
+# --- white-image choice --------------------------------------------------------------------
+
+def _white(name: str, *, zoom: int = 981, focus: int = 582, serial: str | None = SERIAL, level: float = 2400.0,
+           exposure_s: float = 0.0143, size: int = 64, mla_rotation: float | None = None) -> WhiteImage:
+    meta = simulated_camera_metadata(lens=SimulatedLens(zoom_step=zoom, focus_step=focus), size=size,
+                                     exposure_s=exposure_s)
+    if mla_rotation is not None:
+        meta["devices"]["mla"]["rotation"] = mla_rotation
+    model = CameraModel.from_metadata(meta)
+    image = render_white_image(model, level=level, seed=len(name))
+    private = simulated_private_metadata(serial) if serial else {}
+    return WhiteImage.from_image(name, image, meta, private)
+
+
+def _picture_metadata(zoom: int = 981, focus: int = 600) -> dict:
+    return simulated_camera_metadata(lens=SimulatedLens(zoom_step=zoom, focus_step=focus), size=64)
+
+
+def test_selects_nearest_zoom_then_focus_among_decoys():
+    whites = [
+        _white("MOD_0000", focus=600, serial="A999999999"),   # other camera, exact zoom and focus
+        _white("MOD_0001", focus=600, exposure_s=0.004),      # short (dark) exposure
+        _white("MOD_0002", focus=601, level=60.0),            # dark by level
+        _white("MOD_0003", zoom=1203, focus=600),             # other zoom, exact focus
+        _white("MOD_0004", focus=640),                        # farther focus
+        _white("MOD_0005", focus=590),                        # the one
+    ]
+    chosen = select_white_image(whites, _picture_metadata(), serial=SERIAL)
+    assert chosen.name == "MOD_0005"
+    # Without the right one, the farther focus at the right zoom wins over the exact focus at another zoom.
+    chosen = select_white_image([w for w in whites if w.name != "MOD_0005"], _picture_metadata(), serial=SERIAL)
+    assert chosen.name == "MOD_0004"
+
+
+def test_without_serial_the_mla_tells_cameras_apart():
+    other = _white("MOD_0000", focus=600, serial=None, mla_rotation=-0.000859)
+    mine = _white("MOD_0001", focus=650, serial=None)
+    assert select_white_image([other, mine], _picture_metadata(), serial=None).name == "MOD_0001"
+    with pytest.raises(CameraMismatchError):
+        select_white_image([other], _picture_metadata(), serial=None)
+
+
+def test_whites_of_another_camera_only():
+    whites = [_white("MOD_0000", serial="A111111111"), _white("MOD_0001", serial="A222222222")]
+    with pytest.raises(CameraMismatchError, match="A111111111, A222222222"):
+        select_white_image(whites, _picture_metadata(), serial=SERIAL)
+
+
+def test_all_dark_or_none():
+    whites = [_white("MOD_0000", level=50.0), _white("MOD_0001", level=80.0, focus=600)]
+    with pytest.raises(NoWhiteImageError, match="dark"):
+        select_white_image(whites, _picture_metadata(), serial=SERIAL)
+    with pytest.raises(NoWhiteImageError):
+        select_white_image([], _picture_metadata(), serial=SERIAL)
+
+
+# --- calibrate, cache ------------------------------------------------------------------------
+
+@pytest.fixture()
+def white_folder(tmp_path, truth_model, white_800):
+    meta = simulated_camera_metadata(size=SIZE)
+    folder = tmp_path / "calibration"
+    folder.mkdir()
+    write_white_pair(WhiteImage.from_image("MOD_0007", white_800, meta, simulated_private_metadata(SERIAL)), folder)
+    decoy = render_white_image(truth_model, level=40.0, seed=3)
+    write_white_pair(WhiteImage.from_image("MOD_0008", decoy, meta, simulated_private_metadata(SERIAL)), folder)
+    return folder
+
+
+def test_calibration_fits_and_keeps_devignetting(white_folder, truth_model, white_800):
+    meta = simulated_camera_metadata(size=SIZE)
+    cal = load_calibration(white_folder, meta, serial=SERIAL)
+    assert isinstance(cal, Calibration) and not cal.from_cache
+    assert cal.white_name == "MOD_0007" and cal.serial == SERIAL
+    assert (cal.zoom_step, cal.focus_step) == (981, 582)
+    # Seeded from the metadata, which is 0.4 px and 1.2 mrad off the rendered truth.
+    assert _mean_centre_error(cal.lattice, truth_model.lattice, SIZE) < 0.05
+    assert cal.fit_n_lenses > 5000 and cal.fit_rms_px < 0.05
+    assert cal.devignetting.dtype == np.float32 and cal.devignetting.shape == (SIZE, SIZE)
+    expected = (white_800.astype(np.float64) - 168.0) / (4095.0 - 168.0)
+    np.testing.assert_allclose(cal.devignetting, expected, rtol=1e-6, atol=1e-7)
+    assert cal.model.optics == CameraModel.from_metadata(meta).optics
+
+
+def test_cache_hit_skips_the_fit(white_folder, tmp_path):
+    meta = simulated_camera_metadata(size=SIZE)
+    cache = tmp_path / "cache"
+    first = load_calibration(white_folder, meta, serial=SERIAL, cache_dir=cache)
+    path = cache_path(cache, SERIAL, first.white_sha1)
+    assert path.is_file() and path.parent.name == SERIAL and "v1" in path.name
+    mtime = path.stat().st_mtime_ns
+    second = load_calibration(white_folder, meta, serial=SERIAL, cache_dir=cache)
+    assert not first.from_cache and second.from_cache
+    assert path.stat().st_mtime_ns == mtime
+    assert second.lattice == first.lattice
+    assert second.model == first.model
+    assert second.devignetting.dtype == np.float32
+    np.testing.assert_array_equal(second.devignetting, first.devignetting)
+    assert (second.white_sha1, second.white_name, second.fit_n_lenses) == \
+        (first.white_sha1, first.white_name, first.fit_n_lenses)
+    assert not any(p.name.endswith(".tmp") for p in path.parent.iterdir())
+
+
+@pytest.mark.parametrize("damage", ["garbage", "truncated", "other_white"])
+def test_corrupt_cache_is_rebuilt(white_folder, tmp_path, caplog, damage):
+    meta = simulated_camera_metadata(size=SIZE)
+    cache = tmp_path / "cache"
+    first = load_calibration(white_folder, meta, serial=SERIAL, cache_dir=cache)
+    path = cache_path(cache, SERIAL, first.white_sha1)
+    data = path.read_bytes()
+    if damage == "garbage":
+        path.write_bytes(b"not a calibration")
+    elif damage == "truncated":
+        path.write_bytes(data[: len(data) // 2])
+    else:
+        # A readable file, but of another white image, under this one's name.
+        save_calibration(replace(first, white_sha1="f" * 40), path)
+    with caplog.at_level(logging.WARNING, logger="analysis.calibration"):
+        again = load_calibration(white_folder, meta, serial=SERIAL, cache_dir=cache)
+    assert not again.from_cache
+    assert again.lattice == first.lattice
+    assert "unusable" in caplog.text
+    assert read_calibration(path, white_sha1=first.white_sha1).from_cache
+
+
+def test_read_calibration_names_the_problem(tmp_path):
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"\x00" * 10)
+    with pytest.raises(CalibrationError, match="unreadable"):
+        read_calibration(bad)
+
+
+def test_lattice_param_sanity():
+    # The fundamentals the fit demodulates at are the hex lattice's shortest reciprocal vectors.
+    from analysis.lattice_fit import fundamental_frequencies
+    lat = Lattice(origin_x=10.0, origin_y=20.0, pitch_px=9.9, rotation_rad=0.01, scale_y=1.001)
+    g = fundamental_frequencies(lat)
+    steps = lat.basis.T  # rows b_i, b_j
+    assert np.allclose(g[:2] @ steps.T, np.eye(2))
+    lengths = np.linalg.norm(g, axis=1)
+    assert np.allclose(lengths, 2 / (math.sqrt(3) * 9.9), rtol=2e-3)
