@@ -13,25 +13,36 @@ from .image_grid import ImageGrid
 from .lightfield import LightFieldTable
 
 
+# Neighbours of a lens in lattice steps, in order of angle (0, 60, ..., 300 degrees).
+_RING = np.array([(1, 0), (0, 1), (-1, 1), (-1, 0), (0, -1), (1, -1)])
+
+
 def _triangles(table: LightFieldTable, sx: np.ndarray, sy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Lattice indices (n, 3, 2) of the 3 nearest lens sites of points (m) and barycentric weights (n, 3)."""
+    """Lattice indices (n, 3, 2) of the lattice triangle around each point (m) and its barycentric
+    weights (n, 3).
+
+    The nearest lens site is a corner of the containing triangle; of the 6 triangles around it,
+    the one where no barycentric weight is negative is taken.
+    """
     fi, fj = table.lattice_coordinates(sx, sy)
-    base_i, base_j = np.floor(fi).astype(np.int64), np.floor(fj).astype(np.int64)
-    cand = []
-    for di in (-1, 0, 1, 2):
-        for dj in (-1, 0, 1, 2):
-            cand.append(np.stack([base_i + di, base_j + dj], axis=-1))
-    cand = np.stack(cand, axis=1)                                   # (n, 16, 2)
-    pos = cand.astype(np.float64) @ table.basis_m.T                 # (n, 16, 2) metres
+    base = np.stack([np.floor(fi), np.floor(fj)], axis=-1).astype(np.int64)
+    offsets = np.array([(di, dj) for di in (-1, 0, 1, 2) for dj in (-1, 0, 1, 2)])
+    cand = base[:, None, :] + offsets[None]                          # (n, 16, 2)
+    pos = cand.astype(np.float64) @ table.basis_m.T
     dist = np.hypot(pos[..., 0] - sx[:, None], pos[..., 1] - sy[:, None])
-    nearest = np.argsort(dist, axis=1, kind="stable")[:, :3]
-    tri = np.take_along_axis(cand, nearest[..., None], axis=1)      # (n, 3, 2)
-    corners = np.take_along_axis(pos, nearest[..., None], axis=1)   # (n, 3, 2)
-    # Solve [x_k; y_k; 1] w = [x; y; 1] for each point.
-    mat = np.stack([corners[..., 0], corners[..., 1], np.ones(corners.shape[:2])], axis=1)
-    rhs = np.stack([sx, sy, np.ones_like(sx)], axis=1)[..., None]
-    weights = np.linalg.solve(mat, rhs)[..., 0]
-    return tri, weights
+    nearest = cand[np.arange(sx.size), np.argmin(dist, axis=1)]     # (n, 2)
+    best_tri = np.zeros((sx.size, 3, 2), dtype=np.int64)
+    best_w = np.zeros((sx.size, 3))
+    best_min = np.full(sx.size, -np.inf)
+    point = np.stack([sx, sy, np.ones_like(sx)], axis=1)[..., None]
+    for m in range(6):
+        tri = np.stack([nearest, nearest + _RING[m], nearest + _RING[(m + 1) % 6]], axis=1)
+        corners = tri.astype(np.float64) @ table.basis_m.T            # (n, 3, 2)
+        mat = np.stack([corners[..., 0], corners[..., 1], np.ones(corners.shape[:2])], axis=1)
+        w = np.linalg.solve(mat, point)[..., 0]
+        better = w.min(axis=1) > best_min
+        best_tri[better], best_w[better], best_min[better] = tri[better], w[better], w.min(axis=1)[better]
+    return best_tri, np.clip(best_w, 0.0, None)
 
 
 def splat_reference(table: LightFieldTable, values: np.ndarray, alpha: float) -> dict[tuple[int, int], float]:

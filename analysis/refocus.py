@@ -160,16 +160,35 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
 
 
 def _median_and_sigma(hist: np.ndarray) -> tuple[float, float]:
-    """Median and 1.4826 * MAD of integer values given by their histogram."""
-    total = int(hist.sum())
+    """Median and 1.4826 * MAD of integer values given by their histogram.
+
+    Each integer ``v`` stands for values spread evenly over ``[v - 0.5, v + 0.5)``, so that a
+    noise of about 1 ... 3 DN is not rounded to whole DN (which would bias the threshold).
+    """
+    total = float(hist.sum())
     if total == 0:
         return 0.0, 0.0
-    cum = np.cumsum(hist)
-    median = int(np.searchsorted(cum, (total + 1) // 2))
-    dev = np.abs(np.arange(hist.size) - median)
-    dev_hist = np.bincount(dev, weights=hist)
-    mad = int(np.searchsorted(np.cumsum(dev_hist), (total + 1) // 2))
-    return float(median), 1.4826 * float(mad)
+    nonzero = np.flatnonzero(hist)
+    lo, hi = int(nonzero[0]), int(nonzero[-1])
+    counts = hist[lo:hi + 1].astype(np.float64)
+    edges = np.arange(lo, hi + 2, dtype=np.float64) - 0.5
+    cdf = np.concatenate([[0.0], np.cumsum(counts)]) / total
+
+    def frac_below(x: float) -> float:
+        return float(np.interp(x, edges, cdf))
+
+    k = int(np.searchsorted(cdf, 0.5, side="left"))      # cdf[k-1] < 0.5 <= cdf[k]
+    k = min(max(k, 1), cdf.size - 1)
+    median = edges[k - 1] + (0.5 - cdf[k - 1]) / max(cdf[k] - cdf[k - 1], 1e-300)
+    # MAD: the half-width d with half the values in [median - d, median + d] (bisection).
+    d_lo, d_hi = 0.0, float(hi - lo + 1)
+    for _ in range(50):
+        d = 0.5 * (d_lo + d_hi)
+        if frac_below(median + d) - frac_below(median - d) < 0.5:
+            d_lo = d
+        else:
+            d_hi = d
+    return float(median), 1.4826 * 0.5 * (d_lo + d_hi)
 
 
 def _coeffs(alphas: np.ndarray) -> np.ndarray:

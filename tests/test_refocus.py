@@ -1,0 +1,213 @@
+"""Refocus stack, sub-aperture image and products against ray-traced point sources and the
+numpy reference."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from analysis._refocus_reference import refocus_reference
+from analysis.camera_model import CameraModel
+from analysis.errors import ParameterError
+from analysis.lightfield import build_table_from_model
+from analysis.refocus import (alphas_for_depth_range, default_alphas, normalisation, products,
+                              refocus_stack, select_samples, subaperture_image)
+from analysis.sim_camera import simulated_camera_metadata
+from analysis.simulate import render_white_image
+
+BLACK = 168.0
+
+
+@pytest.fixture(scope="module")
+def model() -> CameraModel:
+    return CameraModel.from_metadata(simulated_camera_metadata(size=320))
+
+
+@pytest.fixture(scope="module")
+def table(model):
+    return build_table_from_model(model)
+
+
+def point_source_exposure(model: CameraModel, alpha_true: float, s_hat_m: tuple[float, float], *,
+                          peak_dn: float = 800.0, noise_dn: float = 2.0, seed: int = 0) -> np.ndarray:
+    """Raw image of a point source traced ray by ray through the forward model of
+    docs/camera-model.md (independent of the look-up table).
+
+    The point is placed so that it is sharp at ``alpha_true`` and lands at ``s_hat_m``.
+    """
+    o = model.optics
+    p = o.exit_pupil_m
+    fp = alpha_true * p
+    z = 1.0 / (1.0 / o.focal_length_m - 1.0 / fp)
+    x, y = s_hat_m[0] * z / p, s_hat_m[1] * z / p
+    img = np.array([x, y]) * fp / z
+    r_ap = o.aperture_diameter_m / 2
+    n = 301
+    g = (np.arange(n) + 0.5) / n * 2 - 1
+    uu, vv = np.meshgrid(g * r_ap, g * r_ap)
+    disk = uu ** 2 + vv ** 2 <= r_ap ** 2
+    u = np.stack([uu[disk], vv[disk]], axis=1)
+    s = u + (img - u) * p / fp                                   # step 1: meets the MLA
+    k = o.projection_factor / o.pixel_pitch_m
+    i, j = model.lattice.nearest(model.lattice.origin_x + s[:, 0] * k, model.lattice.origin_y + s[:, 1] * k)
+    cx, cy = model.lens_plane_position_m(i, j)                    # step 2: its lens
+    c = np.stack([cx, cy], axis=1)
+    q = c + (c - u) * o.mla_to_sensor_m / p                       # step 3: lands on the sensor
+    col = np.floor(model.lattice.origin_x + q[:, 0] / o.pixel_pitch_m).astype(int)
+    row = np.floor(model.lattice.origin_y + q[:, 1] / o.pixel_pitch_m).astype(int)
+    cos2 = p * p / (p * p + ((s - u) ** 2).sum(axis=1))
+    on = (col >= 0) & (col < model.width) & (row >= 0) & (row < model.height)
+    expected = np.zeros((model.height, model.width))
+    np.add.at(expected, (row[on], col[on]), (cos2 * cos2)[on])
+    expected *= peak_dn / expected.max()
+    rng = np.random.default_rng(seed)
+    raw = BLACK + expected + rng.normal(0.0, noise_dn, expected.shape)
+    return np.clip(np.rint(raw), 0, 4095).astype(np.uint16)
+
+
+def sparse_random_exposure(model: CameraModel, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    raw = BLACK + rng.normal(0, 2.0, (model.height, model.width))
+    spots = rng.random((model.height, model.width)) < 0.02
+    raw[spots] += rng.uniform(20, 500, spots.sum())
+    return np.clip(np.rint(raw), 0, 4095).astype(np.uint16)
+
+
+def peak_position(image: np.ndarray, half: int = 2) -> tuple[float, float]:
+    """Intensity-weighted centroid (col, row) in a small window around the maximum."""
+    r, c = np.unravel_index(np.argmax(image), image.shape)
+    win = image[r - half:r + half + 1, c - half:c + half + 1].astype(np.float64)
+    win = np.clip(win - win.min(), 0, None)
+    rr, cc = np.mgrid[r - half:r + half + 1, c - half:c + half + 1]
+    return float((win * cc).sum() / win.sum()), float((win * rr).sum() / win.sum())
+
+
+@pytest.mark.parametrize("noise_sigmas", [None, 3.0])
+def test_numba_matches_reference(model, table, noise_sigmas):
+    image = sparse_random_exposure(model, seed=3)
+    alphas = np.array([0.987, 0.9991, 1.0, 1.0042, 1.013])
+    samples = select_samples(image, table, noise_sigmas=noise_sigmas)
+    fast = refocus_stack(image, table, alphas, samples=samples)
+    ref = refocus_reference(image, table, alphas, table.grid, offset=BLACK + samples.background,
+                            threshold=samples.threshold, min_coverage=0.25)
+    assert fast.dtype == np.float32
+    scale = np.abs(ref).max()
+    assert np.abs(fast - ref).max() <= 2e-4 * scale
+
+
+def test_sparse_selection_keeps_only_samples_above_noise(model, table):
+    image = sparse_random_exposure(model, seed=4)
+    samples = select_samples(image, table, noise_sigmas=3.0)
+    assert samples.sigma == pytest.approx(2.0, rel=0.15)
+    raw = image.reshape(-1)[table.pixel_index].astype(np.float64) - BLACK - samples.background
+    assert np.array_equal(samples.ids, np.flatnonzero(raw > samples.threshold))
+    assert np.allclose(samples.values, raw[samples.ids])
+    dense = select_samples(image, table, noise_sigmas=None)
+    assert dense.ids.size == table.n_samples
+
+
+def test_point_source_is_sharpest_at_its_alpha_and_lands_at_s_hat(model, table):
+    alphas = default_alphas()
+    alpha_true = 1.0047
+    s_hat = (0.11e-3, -0.07e-3)
+    image = point_source_exposure(model, alpha_true, s_hat)
+    stack = refocus_stack(image, table, alphas)
+    sub = subaperture_image(image, table, fraction=0.3, blur_sigma_px=1.0)
+    prod = products(stack, sub)
+    peaks = prod.reshape(alphas.size, -1).max(axis=1)
+    step = alphas[1] - alphas[0]
+    best = int(np.argmax(peaks))
+    assert abs(alphas[best] - alpha_true) <= 1.5 * step
+    # Sub-step estimate: centroid of the peak curve above half its maximum.
+    top = peaks > 0.5 * peaks.max()
+    centroid = float((alphas[top] * peaks[top]).sum() / peaks[top].sum())
+    assert abs(centroid - alpha_true) <= 0.5 * step
+    col, row = peak_position(stack[best])
+    expected_col, expected_row = table.grid.to_pixels(*s_hat)
+    # Within half a lens pitch (the LOT knows only the lens, not where in it a ray entered).
+    assert np.hypot(col - expected_col, row - expected_row) < 0.5
+
+
+def test_defocused_point_is_narrower_in_the_sub_aperture_image(model, table):
+    alpha_true = 1.010
+    s_hat = (0.0, 0.0)
+    image = point_source_exposure(model, alpha_true, s_hat, noise_dn=0.0)
+    full = refocus_stack(image, table, np.array([1.0]))[0]
+    sub = subaperture_image(image, table, fraction=0.3, blur_sigma_px=0.0)
+
+    def rms_radius(img):
+        cols, rows = np.meshgrid(np.arange(img.shape[1]), np.arange(img.shape[0]))
+        w = np.clip(img, 0, None)
+        cx, cy = (w * cols).sum() / w.sum(), (w * rows).sum() / w.sum()
+        return np.sqrt((w * ((cols - cx) ** 2 + (rows - cy) ** 2)).sum() / w.sum())
+
+    # Blur radius on the lens plane is R * |1/alpha - 1|: about 2.8 lens pitches at full aperture.
+    assert rms_radius(sub) < 0.6 * rms_radius(full)
+    assert sub.dtype == np.float32 and sub.min() >= 0
+
+
+def test_white_scene_gives_flat_slices(model):
+    """Normalisation by the light each site could receive: no lattice pattern, cos^4 once."""
+    white = render_white_image(model, noise=False)
+    dev = (white.astype(np.float32) - BLACK) / (4095.0 - BLACK)
+    table = build_table_from_model(model, dev)
+    alphas = np.array([0.987, 0.995, 1.0, 1.0071, 1.013])
+    stack = refocus_stack(white, table, alphas, background=0.0, noise_sigmas=None)
+    inner = stack[:, 6:-6, 6:-6]
+    assert np.all(inner > 0)
+    assert inner.std() / inner.mean() < 1e-3
+    # Without a white image the weights are the thin-lens cos^4: flat to a few per cent.
+    cos4_table = build_table_from_model(model)
+    stack = refocus_stack(white, cos4_table, alphas, background=0.0, noise_sigmas=None)
+    inner = stack[:, 6:-6, 6:-6]
+    assert inner.std() / inner.mean() < 0.03
+
+
+def test_empty_frame_gives_zeros(model, table):
+    image = np.full((model.height, model.width), int(BLACK), dtype=np.uint16)
+    for sigmas in (3.0, None):
+        stack = refocus_stack(image, table, default_alphas(5), noise_sigmas=sigmas)
+        assert stack.dtype == np.float32 and not np.isnan(stack).any() and not stack.any()
+    sub = subaperture_image(image, table)
+    assert not np.isnan(sub).any() and not sub.any()
+
+
+def test_normalisation_is_cached_per_alphas(table):
+    a = normalisation(table, default_alphas(4))
+    assert normalisation(table, default_alphas(4)) is a
+    assert normalisation(table, default_alphas(5)) is not a
+
+
+def test_out_argument_and_finer_grid(model, table):
+    image = point_source_exposure(model, 1.0, (0.05e-3, 0.02e-3))
+    alphas = default_alphas(3)
+    out = np.empty((3, *table.grid.shape), dtype=np.float32)
+    assert refocus_stack(image, table, alphas, out=out) is out
+    fine = table.grid.scaled(2)
+    stack = refocus_stack(image, table, alphas, grid=fine)
+    assert stack.shape == (3, *fine.shape)
+    # Same image, sampled twice as densely: the peak lands at the same lens-plane place.
+    x1, y1 = table.grid.to_lens_plane(*peak_position(out[1]))
+    x2, y2 = fine.to_lens_plane(*peak_position(stack[1], half=4))
+    assert np.hypot(x1 - x2, y1 - y2) < 0.25 * table.grid.step_m
+    with pytest.raises(ParameterError, match="out"):
+        refocus_stack(image, table, alphas, out=np.empty((2, 3, 4), np.float32))
+
+
+def test_wrong_image_or_alphas_are_refused(table):
+    with pytest.raises(ParameterError, match="look-up table"):
+        refocus_stack(np.zeros((10, 10), np.uint16), table)
+    image = np.zeros((table.height, table.width), np.uint16)
+    with pytest.raises(ParameterError, match="alphas"):
+        refocus_stack(image, table, np.array([1.0, -1.0]))
+    with pytest.raises(ParameterError, match="fraction"):
+        subaperture_image(image, table, fraction=0.0)
+
+
+def test_alphas_for_depth_range_round_trip(model):
+    alphas = alphas_for_depth_range(55.0, 65.0, 11, model.optics)
+    assert np.all(np.diff(alphas) > 0)
+    z = model.optics.z_of_alpha(alphas)
+    assert z[0] == pytest.approx(65.0) and z[-1] == pytest.approx(55.0)
+    with pytest.raises(ParameterError):
+        alphas_for_depth_range(65.0, 55.0, 11, model.optics)
