@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import Mapping
+
+# mkstemp makes files readable by their owner only; written files get the usual mode instead.
+_NEW_FILE_MODE = 0o644
 
 
 def write_atomic(path: str | Path, data: bytes | bytearray | memoryview) -> Path:
@@ -21,6 +25,7 @@ def write_all_atomic(files: Mapping[Path, bytes | bytearray | memoryview]) -> li
 
     If writing any of them fails, none is renamed and every temp file is removed. (The
     renames themselves are not one atomic step, but each file is whole when it appears.)
+    A file replaced keeps its permission bits; new files get ``rw-r--r--``.
     """
     temps: list[tuple[Path, Path]] = []
     try:
@@ -32,10 +37,31 @@ def write_all_atomic(files: Mapping[Path, bytes | bytearray | memoryview]) -> li
                 fh.write(data)
                 fh.flush()
                 os.fsync(fh.fileno())
+            try:
+                mode = stat.S_IMODE(path.stat().st_mode)
+            except FileNotFoundError:
+                mode = _NEW_FILE_MODE
+            os.chmod(tmp, mode)
         for tmp, path in temps:
             os.replace(tmp, path)
     except BaseException:
         for tmp, _ in temps:
             tmp.unlink(missing_ok=True)
         raise
+    for folder in {path.parent for _, path in temps}:
+        _fsync_folder(folder)
     return [path for _, path in temps]
+
+
+def _fsync_folder(folder: Path) -> None:
+    """Make the renames durable (POSIX); where a folder cannot be opened, skip it."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)

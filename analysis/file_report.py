@@ -114,7 +114,7 @@ def _json_of(container: LfpContainer, ref: Any, report: FileReport, what: str) -
     return value
 
 
-def _inspect_lfp(report: FileReport, data: bytes) -> None:
+def _inspect_lfp(report: FileReport, path: Path, data: bytes) -> None:
     found = inspect_container(data)
     report.sections = [asdict(s) for s in found.sections]
     report.missing_refs = [{"path": p, "ref": r} for p, r in found.missing_refs]
@@ -148,6 +148,9 @@ def _inspect_lfp(report: FileReport, data: bytes) -> None:
                 report.files.append({"name": entry.get("name"), "dataRef": ref, "length": present.get(ref)})
         nxt = toc.get("nextFile")
         report.next_file = nxt if isinstance(nxt, str) and nxt else None
+        if report.next_file and not (path.parent / Path(report.next_file.replace("\\", "/")).name).is_file():
+            report.problems.append(f"nextFile {report.next_file} is not beside this file; the rest of the "
+                                   "backup chain is missing")
     else:
         report.kind = KIND_LFP_OTHER
 
@@ -209,7 +212,7 @@ def inspect_file(path: str | Path) -> FileReport:
     data = path.read_bytes()
     report = FileReport(path=str(path), size_bytes=len(data))
     if data[:8] == FILE_MAGIC or (len(data) < 8 and data and FILE_MAGIC.startswith(data)):
-        _inspect_lfp(report, data)
+        _inspect_lfp(report, path, data)
     elif path.suffix.lower() == ".raw" or (path.suffix.lower() == ".txt" and _has_raw_beside(path)):
         del data  # the pair is read again by parts
         _inspect_pair(report, path)

@@ -218,6 +218,14 @@ def test_failed_write_leaves_nothing(real_metadata, tmp_path, damage):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_written_files_are_readable_by_others(real_metadata, tmp_path):
+    path = write_lfp(_small(real_metadata), tmp_path / "IMG.lfp")
+    assert path.stat().st_mode & 0o777 == 0o644
+    path.chmod(0o600)
+    write_lfp(_small(real_metadata, seed=1), path)
+    assert path.stat().st_mode & 0o777 == 0o600  # a replaced file keeps its mode
+
+
 def test_failed_write_keeps_old_file(real_metadata, tmp_path):
     good = _small(real_metadata)
     path = write_lfp(good, tmp_path / "IMG.lfp")

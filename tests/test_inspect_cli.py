@@ -106,6 +106,11 @@ def test_bundle_and_white_txt(exposure, tmp_path, capsys):
     assert rep["files"] == [{"name": "C:\\T1CALIB\\MOD_0000.RAW", "dataRef": "sha1-" + white.sha1,
                              "length": len(white.raw)}]
     assert rep["next_file"] == "data.C.1"
+    code, rep = _inspect(paths[1], capsys)
+    assert code == 0 and rep["next_file"] is None
+    paths[1].unlink()
+    code, rep = _inspect(paths[0], capsys)
+    assert code == 1 and any("data.C.1" in p for p in rep["problems"])
     (tmp_path / "MOD_0000.TXT").write_bytes(txt + b"\x00\x00")
     code, rep = _inspect(tmp_path / "MOD_0000.TXT", capsys)
     assert code == 0 and rep["kind"] == "white txt"

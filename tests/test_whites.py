@@ -64,6 +64,7 @@ def test_txt_round_trip_and_layout(white_metadata):
     root = json.loads(blob)
     assert root["master"]["picture"]["frameArray"][0]["frame"]["metadata"] == white_metadata
     assert parse_white_txt(blob) == (white_metadata, private)
+    assert white_txt_bytes(*parse_white_txt(blob)) == blob
     # The camera pads its files after the final brace.
     assert parse_white_txt(blob + b"\x00\x00\x1a\r\n") == (white_metadata, private)
 
