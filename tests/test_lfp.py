@@ -198,3 +198,24 @@ def test_trailing_bytes_after_json_tolerated():
     blob = b"\x89LFP\r\n\x1a\n\x00\x00\x00\x01\x00\x00\x00\x00" + section_bytes(
         "LFM", json.dumps(toc).encode() + b"\x00\x00\n")
     assert read_container(blob).toc == toc
+
+
+def test_length_is_big_endian_int64():
+    # Bytes 8-15 are one BE int64 (Lytro's '>8sq80s'): a non-zero high word means a huge section.
+    blob = bytearray(_small_container()[0])
+    length = int.from_bytes(blob[16 + 12:16 + 16], "big")
+    blob[16 + 8] = 0x01
+    with pytest.raises(TruncatedFileError, match=f"announces {(1 << 56) + length} bytes"):
+        read_container(bytes(blob))
+    blob[16 + 8] = 0x80
+    with pytest.raises(FormatError, match="negative length"):
+        read_container(bytes(blob))
+
+
+def test_mutable_input_is_not_aliased():
+    blob, toc = _small_container()
+    buf = bytearray(blob)
+    container = read_container(buf)
+    buf[:] = b"\x00" * len(buf)  # the caller reuses its buffer
+    assert container.toc == toc
+    assert bytes(container.section(sha1_ref(b"first payload")).data) == b"first payload"
