@@ -81,6 +81,10 @@ class WhiteImage:
     def raw(self, value: bytes) -> None:
         self._raw, self.raw_source, self._sha1 = bytes(value), None, None
 
+    def in_memory(self) -> "WhiteImage":
+        """This white image with its raw read into memory (to keep it after its files go away)."""
+        return WhiteImage(self.name, self.metadata, self.private_metadata, raw=self.raw, sha1=self._sha1)
+
     @property
     def raw_length(self) -> int:
         return len(self._raw) if self._raw is not None else self.raw_source.length  # type: ignore[union-attr]

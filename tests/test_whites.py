@@ -218,6 +218,8 @@ def test_loaded_raws_stay_on_disk(white_metadata, tmp_path):
 def test_raw_changed_after_listing(white_metadata, tmp_path):
     raw_path, _ = write_white_pair(_white(white_metadata, 0), tmp_path)
     (loaded,) = load_white_images(tmp_path)
+    kept = loaded.in_memory()
     raw_path.write_bytes(b"\x00" * 10)
     with pytest.raises(RawSizeError, match="cut short"):
         loaded.raw
+    assert kept.raw_source is None and kept.image().shape == (H, W)
