@@ -200,7 +200,8 @@ def _check_file_header(buf: memoryview) -> None:
     if len(buf) < len(FILE_HEADER):
         if bytes(buf) == FILE_MAGIC[:len(buf)] or bytes(buf[:8]) == FILE_MAGIC:
             raise TruncatedFileError(f"the file ends after {len(buf)} bytes, inside the 16-byte LFP header")
-        raise FormatError("not an LFP file (too short for the 16-byte header); expected a Lytro .lfp or data.C.N file")
+        raise FormatError("not an LFP file (too short for the 16-byte header); "
+                          "expected a Lytro .lfp or data.C.N file")
     if bytes(buf[:8]) != FILE_MAGIC:
         raise FormatError(f"not an LFP file: starts with {bytes(buf[:8]).hex(' ')}, "
                           f"not {FILE_MAGIC.hex(' ')}; expected a Lytro .lfp or data.C.N file")

@@ -22,7 +22,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from analysis.exposure import Exposure, exposure_from_lfp_bytes, lfp_bytes, read_exposure, write_lfp, write_raw_pair  # noqa: E402
+from analysis.exposure import (  # noqa: E402
+    Exposure, exposure_from_lfp_bytes, lfp_bytes, read_exposure, write_lfp, write_raw_pair)
 from analysis.file_report import inspect_file  # noqa: E402
 from analysis.lfp import read_container  # noqa: E402
 from analysis.raw12 import pack12, unpack12  # noqa: E402
