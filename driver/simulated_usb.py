@@ -259,7 +259,7 @@ class SimulatedBackend(usb.backend.IBackend):
         if kind == usb.util.DESC_TYPE_STRING:
             if index == 0:
                 return bytes([4, 3, 0x09, 0x04])  # LANGID en-US
-            strings = dict(_STRINGS, **{3: self.camera.identity.serial})
+            strings = {**_STRINGS, 3: self.camera.identity.serial}
             if index not in strings:
                 raise _pipe_error()
             text = strings[index].encode("utf-16-le")
