@@ -269,3 +269,24 @@ def test_bad_image_size_in_metadata(real_metadata, width):
     meta["image"]["width"] = width
     with pytest.raises(MetadataError, match="image.width"):
         exposure_from_raw_pair(pack12(exp.image), json.dumps(meta).encode())
+
+
+def test_no_damage_goes_unnoticed(real_metadata):
+    """Flip single bytes anywhere in an .lfp: the reader either raises a named error or
+    returns exactly the original exposure (for bytes no reader looks at)."""
+    from analysis.errors import AnalysisError
+
+    exp = _small(real_metadata, width=16, height=8)
+    blob = lfp_bytes(exp)
+    unnoticed = []
+    for pos in range(len(blob)):
+        damaged = bytearray(blob)
+        damaged[pos] ^= 0x5A
+        try:
+            back = exposure_from_lfp_bytes(bytes(damaged))
+        except AnalysisError:
+            continue
+        _assert_same(exp, back)
+        unnoticed.append(int(pos))
+    # Only the version word of the file header (bytes 8-11) is free to differ.
+    assert unnoticed == [8, 9, 10, 11]
