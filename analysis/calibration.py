@@ -309,8 +309,19 @@ def load_calibration(source: Path, metadata: dict, *, serial: str | None = None,
         If the lattice fit fails.
     """
     white = select_white_image(load_white_images(source), metadata, serial=serial)
+    return cached_calibration(white, cache_dir=cache_dir, serial=serial, fallback_metadata=metadata)
+
+
+def cached_calibration(white: WhiteImage, *, cache_dir: Path | None, serial: str | None = None,
+                       fallback_metadata: dict | None = None) -> Calibration:
+    """:func:`calibrate` a white image, or read its calibration from ``cache_dir`` if there.
+
+    The cache file is ``cache_dir/<serial>/<white_sha1>.v<version>.npz`` (the white's serial,
+    else ``serial``). One that cannot be read is logged, refitted and overwritten; one that
+    cannot be written is logged and skipped.
+    """
     if cache_dir is None:
-        return calibrate(white, fallback_metadata=metadata)
+        return calibrate(white, fallback_metadata=fallback_metadata)
     sha1 = white.sha1
     path = cache_path(Path(cache_dir), white.serial or serial, sha1)
     if path.is_file():
@@ -320,7 +331,7 @@ def load_calibration(source: Path, metadata: dict, *, serial: str | None = None,
             return calibration
         except CalibrationError as exc:
             log.warning("calibration cache %s is unusable (%s); refitting and rewriting it", path, exc)
-    calibration = calibrate(white, fallback_metadata=metadata)
+    calibration = calibrate(white, fallback_metadata=fallback_metadata)
     try:
         save_calibration(calibration, path)
     except OSError as exc:

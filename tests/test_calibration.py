@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -275,3 +276,25 @@ def test_lattice_param_sanity():
     assert np.allclose(g[:2] @ steps.T, np.eye(2))
     lengths = np.linalg.norm(g, axis=1)
     assert np.allclose(lengths, 2 / (math.sqrt(3) * 9.9), rtol=2e-3)
+
+
+def test_cli_prints_choice_and_fit(white_folder, tmp_path, capsys):
+    import json
+
+    from service.cli.main import main
+
+    # A picture's .TXT is the bare frame metadata; its serial is given separately.
+    txt = tmp_path / "IMG_0001.TXT"
+    txt.write_text(json.dumps(simulated_camera_metadata(size=SIZE)))
+    cache = tmp_path / "cache"
+    assert main(["calibrate", str(white_folder), "--metadata", str(txt), "--serial", SERIAL,
+                 "--cache", str(cache)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["white"]["name"] == "MOD_0007" and out["white"]["serial"] == SERIAL
+    assert out["from_cache"] is False and Path(out["cache_file"]).is_file()
+    assert out["lattice"]["pitch_px"] == pytest.approx(
+        CameraModel.from_metadata(simulated_camera_metadata(size=SIZE)).lattice.pitch_px, rel=1e-4)
+    assert main(["calibrate", str(white_folder), "--white", "mod_0007", "--cache", str(cache)]) == 0
+    assert json.loads(capsys.readouterr().out)["from_cache"] is True
+    assert main(["calibrate", str(white_folder), "--white", "MOD_0042"]) == 2
+    assert "MOD_0007, MOD_0008" in capsys.readouterr().err

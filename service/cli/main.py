@@ -18,6 +18,9 @@ COMMAND_MODULES: list[str] = [
     "validate_plane_cmd",
     "inspect_cmd",
     "camera",
+    "serve",
+    "demo",
+    "calibrate",
 ]
 
 
