@@ -6,7 +6,6 @@ objects (:class:`JobTask`, :class:`JobOutput`) and imports the analysis lazily.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -51,16 +50,7 @@ def _calibration(calibration_dir: str | None, cache_dir: str | None, metadata: d
 def _params(parameters: dict | None):
     from analysis.pipeline import PipelineParams
 
-    if not parameters:
-        return PipelineParams()
-    return PipelineParams(**parameters)
-
-
-def _params_dict(params: object) -> dict:
-    if dataclasses.is_dataclass(params):
-        return {k: (v.tolist() if isinstance(v, np.ndarray) else v)
-                for k, v in dataclasses.asdict(params).items()}
-    return dict(vars(params))
+    return PipelineParams.from_dict(parameters) if parameters else PipelineParams()
 
 
 def _view_slices(stack: np.ndarray, alphas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -93,17 +83,19 @@ def run_task(task: JobTask, progress: Callable[[float], None] | None = None) -> 
     calibration = _calibration(task.calibration_dir, task.calibration_cache_dir, exposure.metadata,
                                exposure.serial)
     params = _params(task.parameters)
-    result = process(exposure, calibration, params, keep_stack=task.keep_slices, progress=progress)
-    columns = {name: np.asarray(values) for name, values in result.to_columns().items()}
-    output = JobOutput(columns=columns, parameters=_params_dict(getattr(result, "params", params)))
-    curves = getattr(result, "curves", None)
-    alphas = getattr(result, "alphas", None)
-    if curves is not None and alphas is not None:
-        output.curves = np.asarray(curves, dtype=np.float32)
-        output.curve_alpha = np.asarray(alphas, dtype=np.float64)
-    stack = getattr(result, "stack", None)
-    if task.keep_slices and stack is not None and alphas is not None:
-        output.slices, output.slice_alpha = _view_slices(np.asarray(stack), np.asarray(alphas))
+    cache_dir = Path(task.calibration_cache_dir) if task.calibration_cache_dir else None
+    result = process(exposure, calibration, params, keep_stack=task.keep_slices, progress=progress,
+                     cache_dir=cache_dir)
+    output = JobOutput(columns={name: np.asarray(col) for name, col in result.particles.items()},
+                       parameters=result.params.to_dict())
+    provenance = result.metadata()
+    provenance.pop("alphas", None)
+    output.extra["provenance"] = provenance
+    if result.curves is not None:
+        output.curves = np.asarray(result.curves, dtype=np.float32)
+        output.curve_alpha = np.asarray(result.alphas, dtype=np.float64)
+    if task.keep_slices and result.stack is not None:
+        output.slices, output.slice_alpha = _view_slices(np.asarray(result.stack), np.asarray(result.alphas))
     output.seconds = time.perf_counter() - start
     return output
 
@@ -111,10 +103,8 @@ def run_task(task: JobTask, progress: Callable[[float], None] | None = None) -> 
 @lru_cache(maxsize=1)
 def warm_up() -> float:
     """Import the analysis and compile its kernels once per process; returns seconds taken."""
-    start = time.perf_counter()
-    import analysis.pipeline  # noqa: F401  (imports numba kernels; cache=True loads them)
+    from analysis.pipeline import warm_up as compile_pipeline
 
-    warm = getattr(analysis.pipeline, "warm_up", None)
-    if callable(warm):
-        warm()
+    start = time.perf_counter()
+    compile_pipeline()
     return time.perf_counter() - start

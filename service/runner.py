@@ -140,8 +140,9 @@ class JobRunner:
         known = self.store.calibration_serials()
         if serial and self.store.has_calibration(serial):
             calibration = self.store.calibration_dir(serial)
-        elif serial is None and len(known) == 1:
-            # A camera .TXT has no serial; with one camera known there is no doubt which.
+        elif len(known) == 1:
+            # A camera .TXT may not name its camera; with one camera known, use it (the
+            # analysis refuses white images of another camera with CameraMismatchError).
             calibration = self.store.calibration_dir(known[0]["serial"])
         return JobTask(exposure_id=record.id,
                        raw_paths=tuple(str(p) for p in self.store.raw_paths(record.id, record.kind)),

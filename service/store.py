@@ -128,6 +128,8 @@ class Store:
                 entry["frame"] = record.frame
                 write_table(nx_group(entry, "data", "NXdata"), output.columns)
                 _write_process(entry, output.parameters)
+                if "provenance" in output.extra:
+                    entry["process"]["provenance"] = json.dumps(output.extra["provenance"], default=str)
                 if output.curves is not None and output.curve_alpha is not None:
                     curves = nx_group(entry, "curves", "NXdata")
                     curves.attrs["signal"] = "brightness"
@@ -166,6 +168,13 @@ class Store:
     def read_parameters(self, exposure_id: str) -> dict:
         with h5py.File(self.result_path(exposure_id), "r") as f:
             return json.loads(f["entry/process/parameters"][()].decode())
+
+    def read_provenance(self, exposure_id: str) -> dict:
+        """Timings, warnings, calibration used: what the pipeline reported beside the table."""
+        with h5py.File(self.result_path(exposure_id), "r") as f:
+            if "entry/process/provenance" not in f:
+                return {}
+            return json.loads(f["entry/process/provenance"][()].decode())
 
     def read_curves(self, exposure_id: str) -> tuple[np.ndarray, np.ndarray] | None:
         """``(alpha, brightness)`` of shape (A,), (N, A), or None if not kept."""

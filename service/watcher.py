@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
+import shutil
 import tempfile
 import threading
 import time
@@ -18,6 +20,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from analysis.errors import AnalysisError
+from analysis.whites import load_white_images
 from service.events import EventBus
 from service.ingest import NotAnExposure, ingest, parse_exposure
 from service.metrics import Metrics
@@ -82,6 +86,7 @@ class CameraWatcher:
         self.battery: float | None = None
         self.last_error: str | None = None
         self.last_poll: float | None = None
+        self.calibration_serial: str | None = None
         self._lock = threading.Lock()
 
     # -- status ----------------------------------------------------------------------
@@ -89,7 +94,7 @@ class CameraWatcher:
     def status(self) -> dict:
         return {"configured": True, "state": self.state, "serial": self.serial, "firmware": self.firmware,
                 "battery": self.battery, "last_error": self.last_error, "last_poll": self.last_poll,
-                "calibrated": bool(self.serial and self.store.has_calibration(self.serial))}
+                "calibrated": bool(self.calibration_serial or (self.serial and self.store.has_calibration(self.serial)))}
 
     def _set_state(self, state: str, error: str | None = None) -> None:
         changed = state != self.state or error != self.last_error
@@ -111,12 +116,8 @@ class CameraWatcher:
 
     def _first_contact(self) -> None:
         assert self.serial is not None
-        if not self.store.has_calibration(self.serial):
-            folder = self.store.calibration_dir(self.serial)
-            pulled = self.camera.pull_calibration(folder)
-            log.info("pulled %d calibration files from camera %s", len(pulled), self.serial)
-            if pulled:
-                self.store.index_calibration(self.serial, source="camera")
+        if self.store.db.get_value(f"calibration_pulled:{self.serial}") is None:
+            self._pull_calibration()
         marker = f"camera_seen:{self.serial}"
         if self.store.db.get_value(marker) is None:
             if not self.pull_existing:
@@ -127,6 +128,30 @@ class CameraWatcher:
                         conn.execute("INSERT OR IGNORE INTO camera_pictures (serial, picture, exposure_id, "
                                      "pulled_at) VALUES (?, ?, NULL, ?)", (self.serial, pic.id, now))
             self.store.db.set_value(marker, "1")
+
+    def _pull_calibration(self) -> None:
+        # Pull into a side folder, then file the white images under the serial they carry
+        # (what the exposures' metadata will name), falling back to the camera's own.
+        incoming = self.store.calibrations_dir / f".incoming-{self.serial}"
+        if incoming.exists():
+            shutil.rmtree(incoming)
+        pulled = self.camera.pull_calibration(incoming)
+        log.info("pulled %d calibration files from camera %s", len(pulled), self.serial)
+        if pulled:
+            try:
+                serials = {w.serial for w in load_white_images(incoming) if w.serial}
+            except AnalysisError as exc:
+                log.error("white images pulled from camera %s are not usable: %s", self.serial, exc)
+                serials = set()
+            serial = serials.pop() if len(serials) == 1 else self.serial
+            target = self.store.calibration_dir(serial)
+            if target.exists():
+                shutil.rmtree(target)
+            os.replace(incoming, target)
+            self.store.index_calibration(serial, source="camera")
+            self.calibration_serial = serial
+            self.bus.publish("calibration", {"serial": serial, "camera": self.serial, "files": len(pulled)})
+        self.store.db.set_value(f"calibration_pulled:{self.serial}", "1")
 
     def _disconnect(self, error: Exception) -> None:
         self.metrics.inc("plenodust_usb_errors_total")

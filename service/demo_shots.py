@@ -1,0 +1,99 @@
+"""A simulated experiment for ``plenodust demo``: a camera folder that gets a new shot every few seconds.
+
+The first shot and the white images come from :func:`analysis.simulate.write_scenario`;
+each later shot is the same cluster a moment later (thermal jitter, slow drift), rendered
+by the simulator's forward model and added to the simulated camera's file system as the
+camera would store it (``IMG_nnnn.RAW`` + ``.TXT``).
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import threading
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from analysis.camera_model import CameraModel
+from analysis.exposure import Exposure, txt_bytes
+from analysis.scenarios import make_scenario
+from analysis.sim_camera import DEFAULT_LENS, DEFAULT_SERIAL, simulated_camera_metadata, simulated_private_metadata
+from analysis.simulate import in_view, particle_truth, render_exposure, write_scenario
+from driver.simulated import CameraFolder
+
+log = logging.getLogger(__name__)
+
+
+class DemoShots:
+    """Fills ``camera_dir`` with shots of one simulated cluster.
+
+    Parameters
+    ----------
+    camera_dir : Path
+        The simulated camera's folder (created); white images go to ``calibration/``.
+    scenario : {"ball", "tilted-layer", "shadowing"}
+    size : int
+        Sensor crop in pixels (multiple of 4); 3280 is a full F01 frame.
+    seed : int
+    """
+
+    def __init__(self, camera_dir: Path, *, scenario: str = "ball", size: int = 1024, seed: int = 1) -> None:
+        self.camera_dir = Path(camera_dir)
+        self.scenario_name = scenario
+        self.size = size
+        self.seed = seed
+        self.metadata = simulated_camera_metadata(lens=DEFAULT_LENS, size=size)
+        self.model = CameraModel.from_metadata(self.metadata)
+        self.private = simulated_private_metadata(DEFAULT_SERIAL)
+        self.scenario = make_scenario(scenario, seed)
+        self.shots = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def prepare(self) -> None:
+        """White images and the first shot, through the simulator's own writer."""
+        staging = self.camera_dir.parent / ".demo-staging"
+        if staging.exists():
+            shutil.rmtree(staging)
+        files = write_scenario(staging, self.scenario_name, self.seed, count=1, size=self.size)
+        self.camera_dir.mkdir(parents=True, exist_ok=True)
+        shutil.copytree(files.calibration_dir, self.camera_dir / "calibration", dirs_exist_ok=True)
+        CameraFolder(self.camera_dir).add_picture(files.raw[0].read_bytes(), files.txt[0].read_bytes())
+        shutil.rmtree(staging)
+        self.shots = 1
+
+    def shoot(self) -> str:
+        """Render the next shot and put it on the camera; returns its name (``IMG_nnnn``)."""
+        rng = np.random.default_rng([self.seed, self.shots + 1])
+        # Thermal jitter plus a slow drift, so consecutive frames differ visibly.
+        self.scenario = self.scenario.jittered(rng, sigma_mm=0.03)
+        particles = self.scenario.particles
+        keep = np.flatnonzero(in_view(self.model, particle_truth(self.model, particles)))
+        image = render_exposure(self.model, particles.subset(keep), seed=int(rng.integers(2 ** 63)),
+                                background_dn=self.scenario.background_dn)
+        now = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.000Z")
+        metadata = simulated_camera_metadata(lens=DEFAULT_LENS, size=self.size, zulu_time=now)
+        exposure = Exposure(image=image, metadata=metadata, private_metadata=self.private)
+        name = CameraFolder(self.camera_dir).add_picture(exposure.raw_bytes(), txt_bytes(exposure))
+        self.shots += 1
+        return name
+
+    def start(self, every_s: float) -> None:
+        """Shoot every ``every_s`` seconds in a background thread until :meth:`stop`."""
+        def loop() -> None:
+            while not self._stop.wait(every_s):
+                try:
+                    name = self.shoot()
+                    log.info("demo camera: new shot %s", name)
+                except Exception:
+                    log.exception("demo camera: rendering a shot failed")
+
+        self._thread = threading.Thread(target=loop, name="demo-shots", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10)
