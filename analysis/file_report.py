@@ -120,21 +120,23 @@ def _inspect_lfp(report: FileReport, path: Path, data: bytes) -> None:
     report.missing_refs = [{"path": p, "ref": r} for p, r in found.missing_refs]
     report.problems.extend(found.problems)
     if found.container is None:
-        report.kind = "lfp"
+        report.kind = KIND_LFP_OTHER
         return
     container = found.container
     toc = container.toc
     if isinstance(toc.get("picture"), dict):
         report.kind = KIND_PICTURE
-        frame = lookup(toc, "picture.frameArray")
-        frame = frame[0].get("frame", {}) if isinstance(frame, list) and frame and isinstance(frame[0], dict) \
-            else {}
+        frames = lookup(toc, "picture.frameArray")
+        frame = frames[0].get("frame") if isinstance(frames, list) and frames and isinstance(frames[0], dict) \
+            else None
+        frame = frame if isinstance(frame, dict) else {}
         metadata = _json_of(container, frame.get("metadataRef"), report, "metadata")
         private = _json_of(container, frame.get("privateMetadataRef"), report, "private metadata")
         if metadata is not None:
             report.metadata = key_metadata(metadata, private)
             image_ref = frame.get("imageRef")
-            if isinstance(image_ref, str) and image_ref in {s.sha1 for s in container.sections}:
+            verified = {s["sha1"] for s in report.sections if s["sha1_ok"]}
+            if isinstance(image_ref, str) and image_ref in verified:
                 report.raw_sha1 = image_ref[len("sha1-"):]
                 _check_raw(report, container.section(image_ref).length, metadata, f"image section {image_ref}")
         elif not isinstance(frame.get("metadataRef"), str):

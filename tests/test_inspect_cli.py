@@ -71,6 +71,7 @@ def test_corrupted_lfp(exposure, tmp_path, capsys):
     code, rep = _inspect(tmp_path / "bad.lfp", capsys)
     assert code == 1
     assert [s["sha1_ok"] for s in rep["sections"]] == [True, True, True, False]
+    assert rep["raw_sha1"] is None  # a damaged image has no trustworthy identity
     assert rep["metadata"]["serial"] == "A1"  # the sound sections still report
 
 
@@ -130,3 +131,11 @@ def test_missing_file_and_usage(tmp_path, capsys):
     with pytest.raises(SystemExit) as info:
         main(["inspect"])
     assert info.value.code == 2
+
+
+@pytest.mark.parametrize("content", [b"\x89LFP\r\n\x1a\nxxxxxxxx",
+                                     b"\x89LFP\r\n\x1a\n\x00\x00\x00\x01\x00\x00\x00\x00\x89LFM"])
+def test_damaged_lfp_header_is_a_problem(tmp_path, capsys, content):
+    (tmp_path / "x.lfp").write_bytes(content)
+    code, rep = _inspect(tmp_path / "x.lfp", capsys)
+    assert code == 1 and rep["readable"] and rep["sections"] == [] and rep["problems"]
