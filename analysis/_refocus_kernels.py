@@ -21,27 +21,43 @@ FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 
 @njit(cache=True)
-def raw_histogram(image_flat, pixel_index, stride):  # pragma: no cover - numba
-    """Histogram (65536 bins) of the raw values at every ``stride``-th sample."""
-    hist = np.zeros(65536, np.int64)
-    for n in range(0, pixel_index.size, stride):
-        hist[image_flat[pixel_index[n]]] += 1
-    return hist
+def value_histogram(image_flat, pixel_index, weight, black, beta, divide, lo, inv_width, hist):  # pragma: no cover
+    """Histogram of ``(raw + dither - black - beta * weight)`` (divided by ``weight`` if ``divide``)
+    over all samples; bin ``b`` is centred on ``lo + b / inv_width``, values outside go to the
+    end bins.
+
+    The dither (a golden-ratio sequence over [-0.5, 0.5)) spreads each integer raw count over
+    the interval it stands for, so that medians and MADs of 1 ... 3 DN noise are not rounded
+    to whole DN.
+    """
+    n_bins = hist.size
+    phase = 0.0
+    for k in range(pixel_index.size):
+        phase += 0.6180339887498949
+        if phase >= 1.0:
+            phase -= 1.0
+        val = image_flat[pixel_index[k]] + (phase - 0.5) - black - beta * weight[k]
+        if divide:
+            val = val / weight[k]
+        b = int(math.floor((val - lo) * inv_width + 0.5))
+        if b < 0:
+            b = 0
+        elif b >= n_bins:
+            b = n_bins - 1
+        hist[b] += 1
 
 
 @njit(parallel=True, cache=True)
-def select_samples(image_flat, pixel_index, keep, offset, threshold, n_chunks):  # pragma: no cover
-    """Samples with ``raw - offset > threshold`` (and ``keep``), as (ids int32, values float32).
-
-    ``keep`` is a bool mask over samples (all True for "every sample"). Order is preserved.
-    """
+def select_samples(image_flat, pixel_index, weight, keep, black, beta, threshold, n_chunks):  # pragma: no cover
+    """Samples with ``raw - black - beta * weight > threshold`` (and ``keep``), as
+    (ids int32, values float32); order is preserved. ``keep`` is a bool mask over samples."""
     n = pixel_index.size
     step = (n + n_chunks - 1) // n_chunks
     counts = np.zeros(n_chunks + 1, np.int64)
     for c in prange(n_chunks):
         cnt = 0
         for k in range(c * step, min(n, (c + 1) * step)):
-            if keep[k] and image_flat[pixel_index[k]] - offset > threshold:
+            if keep[k] and image_flat[pixel_index[k]] - black - beta * weight[k] > threshold:
                 cnt += 1
         counts[c + 1] = cnt
     starts = np.cumsum(counts)
@@ -50,7 +66,7 @@ def select_samples(image_flat, pixel_index, keep, offset, threshold, n_chunks): 
     for c in prange(n_chunks):
         pos = starts[c]
         for k in range(c * step, min(n, (c + 1) * step)):
-            val = image_flat[pixel_index[k]] - offset
+            val = image_flat[pixel_index[k]] - black - beta * weight[k]
             if keep[k] and val > threshold:
                 ids[pos] = k
                 values[pos] = val

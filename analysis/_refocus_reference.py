@@ -62,15 +62,16 @@ def splat_reference(table: LightFieldTable, values: np.ndarray, alpha: float) ->
 
 
 def refocus_reference(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray, grid: ImageGrid, *,
-                      offset: float, threshold: float, min_coverage: float,
+                      black: float, background: float, threshold: float, min_coverage: float,
                       keep: np.ndarray | None = None) -> np.ndarray:
     """Refocused stack (A, H, W) float64, by the recipe of :mod:`analysis.refocus`.
 
-    ``offset`` is black level plus background; samples with ``raw - offset <= threshold`` are
-    dropped from the numerator; ``keep`` (bool over samples) restricts both sums.
+    Each sample's value is ``raw - black - background * weight``; samples whose value is
+    ``<= threshold`` are dropped from the numerator; ``keep`` (bool over samples) restricts both sums.
     """
     keep = np.ones(table.n_samples, dtype=bool) if keep is None else keep
-    values = image.reshape(-1)[table.pixel_index].astype(np.float64) - offset
+    values = (image.reshape(-1)[table.pixel_index].astype(np.float64) - black
+              - background * table.weight.astype(np.float64))
     numerator = np.where(keep & (values > threshold), values, 0.0)
     weights = np.where(keep, table.weight.astype(np.float64), 0.0)
     cols, rows = np.meshgrid(np.arange(grid.width), np.arange(grid.height))

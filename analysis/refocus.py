@@ -8,10 +8,11 @@ same magnification: a point at ``(X, Y, Z)`` whose image forms at ``Fp`` is shar
 
 How a slice is formed:
 
-1. Samples (table entries) are read from the raw image, minus the black level and the
-   background (a robust median). Unless ``noise_sigmas=None``, only samples above
-   ``noise_sigmas`` robust standard deviations contribute: dust frames are sparse, so this
-   skips almost all the work, and the skipped samples are pure noise.
+1. Samples (table entries) are read from the raw image, minus the black level and the diffuse
+   background (plasma glow, taken to light the sensor like the white image, so it is
+   ``level * weight`` with a robust median for the level). Unless ``noise_sigmas=None``, only
+   samples above ``noise_sigmas`` robust standard deviations contribute: dust frames are
+   sparse, so this skips almost all the work, and the skipped samples are pure noise.
 2. Each sample is shifted (continuously, sub-lens) and split barycentrically onto the 3 lens
    sites of the lattice triangle it falls in, for all alphas at once.
 3. Each site is divided by the light it *could* receive: the same splat of every sample's
@@ -47,6 +48,10 @@ __all__ = ["ImageGrid", "Samples", "default_alphas", "alphas_for_depth_range", "
 DEFAULT_MIN_COVERAGE = 0.25
 # Below this many DN the noise estimate is taken as quantisation-limited.
 _MIN_SIGMA_DN = 0.5
+# Histogram for the robust background and noise: 1/8 DN bins over -512 ... 4096 DN.
+_HIST_BIN_DN = 0.125
+_HIST_LO = -512.0
+_HIST_BINS = int(4608 / _HIST_BIN_DN)
 
 
 @dataclass(frozen=True)
@@ -58,13 +63,15 @@ class Samples:
     ids : ndarray (M,), int32
         Indices into the table's samples.
     values : ndarray (M,), float32
-        ``raw - black_level - background`` of those samples.
+        ``raw - black_level - background * weight`` of those samples.
     background : float
-        Robust background (median of ``raw - black_level`` over the table's samples), DN.
+        Diffuse background (plasma glow) in DN of a median-weight pixel; subtracted from each
+        sample in proportion to its weight, as a uniform glow lights the sensor like the white
+        image does.
     sigma : float
-        Robust noise (1.4826 * MAD), DN.
+        Robust noise of the background-subtracted samples (1.4826 * MAD), DN.
     threshold : float
-        Samples with ``raw - black_level - background <= threshold`` were skipped (``-inf``: none).
+        Samples with a value ``<= threshold`` were skipped (``-inf``: none).
     """
 
     ids: np.ndarray
@@ -122,7 +129,7 @@ def _check_image(image: np.ndarray, table: LightFieldTable) -> np.ndarray:
 
 def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: float | None = None,
                    background: float | None = None, noise_sigmas: float | None = 3.0) -> Samples:
-    """Read the table's samples from a raw image and keep those above the noise.
+    """Read the table's samples from a raw image, subtract the background, keep those above the noise.
 
     Parameters
     ----------
@@ -132,8 +139,9 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
     black_level : float, optional
         Raw black level; default ``table.black_level``.
     background : float, optional
-        Level (DN above black) subtracted from every sample; default: the median of the
-        samples (robust: particles are a small fraction). Pass ``0.0`` to keep it.
+        Diffuse glow in DN of a median-weight pixel, subtracted as ``background * weight`` from
+        each sample; default: the median of ``(raw - black) / weight`` over all samples (robust:
+        particles light a small fraction of them). Pass ``0.0`` to keep everything.
     noise_sigmas : float or None
         Keep samples more than this many robust standard deviations above the background;
         ``None`` keeps every sample (dense, slower, same normalisation).
@@ -141,50 +149,66 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
     Returns
     -------
     Samples
+
+    Raises
+    ------
+    ParameterError
+        If the image does not match the table, or ``noise_sigmas`` is negative.
     """
     flat = _check_image(image, table)
     black = table.black_level if black_level is None else float(black_level)
-    hist = kern.raw_histogram(flat, table.pixel_index, 1)
-    median_raw, sigma = _median_and_sigma(hist)
-    bg = median_raw - black if background is None else float(background)
+    if background is None:
+        hist = np.zeros(_HIST_BINS, dtype=np.int64)
+        kern.value_histogram(flat, table.pixel_index, table.weight, black, 0.0, True,
+                             _HIST_LO, 1.0 / _HIST_BIN_DN, hist)
+        bg, _ = _median_and_sigma(hist, _HIST_LO, _HIST_BIN_DN)
+    else:
+        bg = float(background)
     if noise_sigmas is None:
         threshold = -np.inf
+        sigma = float("nan")
     else:
         if noise_sigmas < 0:
             raise ParameterError(f"noise_sigmas must be >= 0 or None, got {noise_sigmas}")
-        threshold = float(noise_sigmas) * max(sigma, _MIN_SIGMA_DN)
-    keep = np.ones(table.n_samples, dtype=np.bool_)
-    ids, values = kern.select_samples(flat, table.pixel_index, keep, np.float32(black + bg),
-                                      np.float32(threshold), numba.get_num_threads())
+        hist = np.zeros(_HIST_BINS, dtype=np.int64)
+        kern.value_histogram(flat, table.pixel_index, table.weight, black, bg, False,
+                             _HIST_LO, 1.0 / _HIST_BIN_DN, hist)
+        centre, sigma = _median_and_sigma(hist, _HIST_LO, _HIST_BIN_DN)
+        threshold = centre + float(noise_sigmas) * max(sigma, _MIN_SIGMA_DN)
+    keep = _all_samples(table)
+    ids, values = kern.select_samples(flat, table.pixel_index, table.weight, keep, float(black), float(bg),
+                                      float(threshold), numba.get_num_threads())
     return Samples(ids=ids, values=values, background=float(bg), sigma=float(sigma), threshold=float(threshold))
 
 
-def _median_and_sigma(hist: np.ndarray) -> tuple[float, float]:
-    """Median and 1.4826 * MAD of integer values given by their histogram.
+def _all_samples(table: LightFieldTable) -> np.ndarray:
+    keep = table._normalisations.get(b"all")
+    if keep is None or keep.size != table.n_samples:
+        keep = np.ones(table.n_samples, dtype=np.bool_)
+        table._normalisations[b"all"] = keep
+    return keep
 
-    Each integer ``v`` stands for values spread evenly over ``[v - 0.5, v + 0.5)``, so that a
-    noise of about 1 ... 3 DN is not rounded to whole DN (which would bias the threshold).
-    """
+
+def _median_and_sigma(hist: np.ndarray, lo: float, width: float) -> tuple[float, float]:
+    """Median and 1.4826 * MAD of values given by their histogram (bin ``k`` centred on
+    ``lo + k * width``), values taken as spread evenly within their bin."""
     total = float(hist.sum())
     if total == 0:
         return 0.0, 0.0
     nonzero = np.flatnonzero(hist)
-    lo, hi = int(nonzero[0]), int(nonzero[-1])
-    counts = hist[lo:hi + 1].astype(np.float64)
-    edges = np.arange(lo, hi + 2, dtype=np.float64) - 0.5
+    first, last = int(nonzero[0]), int(nonzero[-1])
+    counts = hist[first:last + 1].astype(np.float64)
+    edges = lo + (np.arange(first, last + 2, dtype=np.float64) - 0.5) * width
     cdf = np.concatenate([[0.0], np.cumsum(counts)]) / total
-
-    def frac_below(x: float) -> float:
-        return float(np.interp(x, edges, cdf))
-
     k = int(np.searchsorted(cdf, 0.5, side="left"))      # cdf[k-1] < 0.5 <= cdf[k]
     k = min(max(k, 1), cdf.size - 1)
-    median = edges[k - 1] + (0.5 - cdf[k - 1]) / max(cdf[k] - cdf[k - 1], 1e-300)
+    median = edges[k - 1] + (0.5 - cdf[k - 1]) / max(cdf[k] - cdf[k - 1], 1e-300) * width
     # MAD: the half-width d with half the values in [median - d, median + d] (bisection).
-    d_lo, d_hi = 0.0, float(hi - lo + 1)
+    d_lo, d_hi = 0.0, float(edges[-1] - edges[0])
     for _ in range(50):
         d = 0.5 * (d_lo + d_hi)
-        if frac_below(median + d) - frac_below(median - d) < 0.5:
+        inside = np.interp(median + d, edges, cdf) - np.interp(median - d, edges, cdf)
+        if inside < 0.5:
             d_lo = d
         else:
             d_hi = d
