@@ -1,0 +1,116 @@
+"""Score found particles against known truth (the simulator's ``IMG_nnnn.truth.csv``).
+
+Found and true particles are paired one-to-one by the Hungarian method on their 3D distance;
+pairs farther apart than ``max_distance`` (a fraction of the mean nearest-neighbour distance)
+do not count. Errors are reported as fractions of the mean 3D nearest-neighbour distance of the
+truth, as the paper does.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
+
+#: Defocus bins (blur diameter in lens pitches) for the depth error breakdown.
+BLUR_BINS: tuple[tuple[float, float], ...] = ((0.0, 0.5), (0.5, 1.0), (1.0, 2.0), (2.0, math.inf))
+
+
+@dataclass
+class Score:
+    """Accuracy of one exposure's particle table against its truth.
+
+    All ``*_over_nn`` values are fractions of ``nn_mm`` (multiply by 100 for %).
+    ``depth_by_blur`` maps a bin label to ``(count, absolute depth RMS over NN)``.
+    ``pairs_separated`` counts shadowing pairs (true particles closer laterally than
+    ``pair_lateral_mm``) whose two members both matched.
+    """
+
+    n_true: int
+    n_found: int
+    n_matched: int
+    recall: float
+    precision: float
+    nn_mm: float
+    depth_fit_rms_over_nn: float
+    depth_abs_rms_over_nn: float
+    lateral_rms_over_nn: float
+    depth_by_blur: dict[str, tuple[int, float]] = field(default_factory=dict)
+    pairs_total: int = 0
+    pairs_separated: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def mean_nn_distance(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> float:
+    """Mean 3D nearest-neighbour distance of a point set."""
+    pts = np.column_stack([x, y, z])
+    if pts.shape[0] < 2:
+        return math.nan
+    d, _ = cKDTree(pts).query(pts, k=2)
+    return float(d[:, 1].mean())
+
+
+def score(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], *, nn_mm: float | None = None,
+          max_distance: float = 0.5, pair_lateral: float = 0.35) -> Score:
+    """Pair found particles with true ones and measure recall, precision and errors.
+
+    Parameters
+    ----------
+    found : mapping with columns ``X, Y, Z`` (mm)
+    truth : mapping with columns ``X, Y, Z`` (mm) and optionally ``blur_pitches``
+    nn_mm : float, optional
+        Mean nearest-neighbour distance; default: computed from the truth.
+    max_distance : float
+        Largest 3D distance of a valid pair, as a fraction of ``nn_mm``.
+    pair_lateral : float
+        True particles closer than this fraction of ``nn_mm`` in ``(X, Y)`` form a shadowing pair.
+
+    Returns
+    -------
+    Score
+    """
+    tx, ty, tz = (np.asarray(truth[c], float) for c in ("X", "Y", "Z"))
+    fx, fy, fz = (np.asarray(found[c], float) for c in ("X", "Y", "Z"))
+    nn = mean_nn_distance(tx, ty, tz) if nn_mm is None else float(nn_mm)
+    n_true, n_found = tx.size, fx.size
+    cost = np.sqrt((fx[:, None] - tx) ** 2 + (fy[:, None] - ty) ** 2 + (fz[:, None] - tz) ** 2)
+    limit = max_distance * nn
+    if n_true and n_found:
+        cost = np.where(np.isfinite(cost), cost, 1e9)
+        rows, cols = linear_sum_assignment(np.where(cost <= limit, cost, 1e9))
+        ok = cost[rows, cols] <= limit
+        rows, cols = rows[ok], cols[ok]
+    else:
+        rows = cols = np.empty(0, dtype=np.int64)
+    m = rows.size
+    dz = fz[rows] - tz[cols]
+    lateral = np.hypot(fx[rows] - tx[cols], fy[rows] - ty[cols])
+    if m >= 3:
+        slope, intercept = np.polyfit(fz[rows], tz[cols], 1)
+        fit_res = tz[cols] - (slope * fz[rows] + intercept)
+        fit_rms = float(np.sqrt(np.mean(fit_res**2)))
+    else:
+        fit_rms = math.nan
+    by_blur: dict[str, tuple[int, float]] = {}
+    if "blur_pitches" in truth and m:
+        blur = np.asarray(truth["blur_pitches"], float)[cols]
+        for lo, hi in BLUR_BINS:
+            sel = (blur >= lo) & (blur < hi)
+            label = f"{lo:g}-{hi:g}" if math.isfinite(hi) else f">{lo:g}"
+            by_blur[label] = (int(sel.sum()), float(np.sqrt(np.mean(dz[sel] ** 2)) / nn) if sel.any() else math.nan)
+    # Shadowing pairs: true particles nearly on one line of sight.
+    pairs = cKDTree(np.column_stack([tx, ty])).query_pairs(pair_lateral * nn) if n_true > 1 else set()
+    matched = set(cols.tolist())
+    separated = sum(1 for a, b in pairs if a in matched and b in matched)
+    return Score(n_true=n_true, n_found=n_found, n_matched=m,
+                 recall=m / n_true if n_true else math.nan, precision=m / n_found if n_found else math.nan,
+                 nn_mm=nn, depth_fit_rms_over_nn=fit_rms / nn,
+                 depth_abs_rms_over_nn=float(np.sqrt(np.mean(dz**2))) / nn if m else math.nan,
+                 lateral_rms_over_nn=float(np.sqrt(np.mean(lateral**2))) / nn if m else math.nan,
+                 depth_by_blur=by_blur, pairs_total=len(pairs), pairs_separated=separated)

@@ -1,0 +1,159 @@
+"""Accuracy, speed and memory of the pipeline on simulated scenarios (prints a report).
+
+For each scenario and seed: simulate a full-size exposure (``plenodust simulate``'s
+``write_scenario``), process it with a cached calibration after a warm-up, match the particles
+found to the truth, and print recall, precision, depth and lateral errors as % of the mean 3D
+nearest-neighbour distance (NN), the depth error by defocus, shadowing pairs separated, and
+per-stage times and peak memory.
+
+Usage::
+
+    NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/bench_pipeline.py [--size 3280]
+        [--seeds 1 2 3] [--scenarios tilted-layer shadowing ball] [--work DIR] [--repeat 3]
+
+Targets (issue): tilted layer and shadowing pairs: recall >= 98 %, precision >= 95 %, depth
+(linear-fit RMS) <= 3.5 %, absolute depth RMS <= 5 %, lateral RMS <= 1.5 %, every pair
+separated; ball: recall >= 95 %, precision >= 95 %, depth <= 7 %, lateral <= 3 %.
+Speed: <= 1 s per full-size exposure with 40 slices on 2 cores, calibration cached; <= 600 MB.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".cache" / "numba"))
+
+import numpy as np  # noqa: E402
+
+from analysis.accuracy import BLUR_BINS, score  # noqa: E402
+from analysis.calibration import load_calibration  # noqa: E402
+from analysis.exposure import read_exposure  # noqa: E402
+from analysis.pipeline import PipelineParams, process, read_csv, warm_up  # noqa: E402
+
+TARGETS = {
+    "tilted-layer": dict(recall=0.98, precision=0.95, depth_fit=0.035, depth_abs=0.05, lateral=0.015),
+    "shadowing": dict(recall=0.98, precision=0.95, depth_fit=0.035, depth_abs=0.05, lateral=0.015),
+    "ball": dict(recall=0.95, precision=0.95, depth_fit=0.07, depth_abs=None, lateral=0.03),
+}
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_case(work: Path, scenario: str, seed: int, size: int, params: PipelineParams, repeat: int) -> dict:
+    folder = work / f"{scenario}-{seed}-{size}"
+    if not (folder / "IMG_0001.lfp").is_file():
+        # In a child process, so that the peak memory printed is the pipeline's alone.
+        subprocess.run([sys.executable, "-m", "service.cli.main", "simulate", "--scenario", scenario,
+                        "--seed", str(seed), "--size", str(size), "--out", str(folder), "--quiet"],
+                       check=True, cwd=ROOT)
+    meta = json.loads((folder / "scenario.json").read_text())
+    nn = meta["exposures"][0]["mean_nn_distance_mm"]
+    exposure = read_exposure(folder / "IMG_0001.lfp")
+    cache = folder / "cache"
+    calibration = load_calibration(folder / "calibration", exposure.metadata, serial=exposure.serial,
+                                   cache_dir=cache)
+    process(exposure, calibration, params, cache_dir=cache)  # warm: table built, normalisations cached
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        result = process(exposure, calibration, params, cache_dir=cache)
+        times.append(time.perf_counter() - t0)
+    truth = read_csv(folder / "IMG_0001.truth.csv")
+    s = score(result.particles, truth, nn_mm=nn)
+    return {"scenario": scenario, "seed": seed, "score": s, "timings": result.timings,
+            "wall_s": min(times), "warnings": result.warnings, "grid": (result.grid.width, result.grid.height)}
+
+
+def pct(v: float) -> str:
+    return "   -  " if v is None or not np.isfinite(v) else f"{100 * v:6.2f}"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--size", type=int, default=3280)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    parser.add_argument("--scenarios", nargs="+", default=["tilted-layer", "shadowing", "ball"])
+    parser.add_argument("--work", type=Path, default=None, help="keep simulated files here (default: a temp dir)")
+    parser.add_argument("--repeat", type=int, default=3, help="timed runs per case (the fastest is shown)")
+    parser.add_argument("--params", type=str, default="{}", help="PipelineParams overrides as JSON")
+    args = parser.parse_args()
+    params = PipelineParams.from_dict(json.loads(args.params))
+
+    t0 = time.perf_counter()
+    warm_up()
+    print(f"warm-up (compile or load kernels): {time.perf_counter() - t0:.2f} s")
+    work = args.work or Path(tempfile.mkdtemp(prefix="plenodust-bench-"))
+    work.mkdir(parents=True, exist_ok=True)
+    rss0 = peak_rss_mb()
+
+    rows = []
+    for scenario in args.scenarios:
+        for seed in args.seeds:
+            rows.append(run_case(work, scenario, seed, args.size, params, args.repeat))
+            r = rows[-1]
+            print(f"  done {scenario} seed {seed}: {r['score'].n_matched}/{r['score'].n_true} matched, "
+                  f"{r['wall_s']:.3f} s", flush=True)
+
+    print(f"\nsensor {args.size} px, {params.n_slices} slices over alpha {params.alpha_min} ... {params.alpha_max}; "
+          f"errors in % of the mean 3D nearest-neighbour distance (NN)\n")
+    head = (f"{'scenario':13s} {'seed':>4s} {'true':>5s} {'found':>5s} {'recall':>7s} {'precis':>7s} "
+            f"{'depth':>7s} {'|dZ|':>7s} {'lateral':>7s} {'pairs':>6s}")
+    print(head)
+    print("-" * len(head))
+    for r in rows:
+        s = r["score"]
+        pairs = f"{s.pairs_separated}/{s.pairs_total}" if s.pairs_total else "-"
+        print(f"{r['scenario']:13s} {r['seed']:4d} {s.n_true:5d} {s.n_found:5d} {pct(s.recall)} {pct(s.precision)} "
+              f"{pct(s.depth_fit_rms_over_nn)} {pct(s.depth_abs_rms_over_nn)} {pct(s.lateral_rms_over_nn)} "
+              f"{pairs:>6s}")
+    print("\ntargets:", "; ".join(f"{k}: " + ", ".join(f"{n} {'>=' if n in ('recall', 'precision') else '<='} "
+                                                        f"{100 * v:g} %" for n, v in t.items() if v is not None)
+                                  for k, t in TARGETS.items()))
+
+    labels = [f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">{lo:g}" for lo, hi in BLUR_BINS]
+    print("\nabsolute depth RMS (% NN) by defocus blur (lens pitches), particles in bin in brackets")
+    print(f"{'scenario':13s} " + " ".join(f"{lab:>14s}" for lab in labels))
+    for scenario in args.scenarios:
+        cells = []
+        for lab in labels:
+            sq, n = 0.0, 0
+            for r in rows:
+                if r["scenario"] != scenario:
+                    continue
+                count, rms = r["score"].depth_by_blur.get(lab, (0, np.nan))
+                if count:
+                    sq += rms**2 * count
+                    n += count
+            cells.append(f"{100 * np.sqrt(sq / n):7.2f} ({n:4d})" if n else f"{'-':>14s}")
+        print(f"{scenario:13s} " + " ".join(cells))
+
+    stages = sorted({k for r in rows for k in r["timings"] if k != "total"},
+                    key=lambda k: -np.median([r["timings"].get(k, 0) for r in rows]))
+    print("\nper-stage times (median over cases, ms):")
+    for k in stages:
+        print(f"  {k:12s} {1e3 * np.median([r['timings'].get(k, 0.0) for r in rows]):8.1f}")
+    walls = [r["wall_s"] for r in rows]
+    print(f"  {'wall total':12s} {1e3 * np.median(walls):8.1f}  (min {1e3 * min(walls):.1f}, max {1e3 * max(walls):.1f}; "
+          f"target <= 1000 ms)")
+    print(f"  output grid  {rows[0]['grid'][0]} x {rows[0]['grid'][1]} px")
+    print(f"\npeak RSS: {peak_rss_mb():.0f} MB (after warm-up: {rss0:.0f} MB; target <= 600 MB)")
+    warned = {w for r in rows for w in r["warnings"]}
+    if warned:
+        print("warnings seen:", *sorted(warned), sep="\n  ")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
