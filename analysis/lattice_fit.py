@@ -33,9 +33,10 @@ _FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 _BLOCK_PX = 64
 _STRIDE_PX = 32
 # Radii (px from the seed origin) of the blocks used in each coarse-to-fine stage; the last
-# stage uses all of them. Seed errors of 0.2 % pitch and 1 mrad drift less than a quarter
-# cycle over the first radius.
+# stage uses all of them. After the coarse frequency lock, the phase model drifts far less
+# than half a cycle from one stage's radius to the next, so wrapped residuals stay unambiguous.
 _STAGE_RADII_PX = (300.0, 700.0, 1400.0, math.inf)
+# Below this modulation depth at the fundamentals there is no micro-image pattern to fit.
 _MIN_MODULATION = 0.02
 
 
@@ -48,7 +49,8 @@ class LatticeFit:
     lattice : Lattice
         The fitted micro-image lattice (``scale_x`` kept from the seed).
     rms_px : float
-        Robust RMS of the block phase residuals, expressed as a displacement in pixels.
+        RMS of the block phase residuals of the final fit, each expressed as a displacement in
+        pixels along its fundamental (clipped at 1 px).
     n_blocks : int
         Image blocks that entered the fit (bright enough, on the sensor).
     n_lenses : int
@@ -242,7 +244,7 @@ def fit_lattice(white: np.ndarray, seed: Lattice, *, black_level: float = 168.0,
     white : ndarray of shape (H, W)
         Raw white image (uint16 counts, or float). Bayer channels may have different gains.
     seed : Lattice
-        Starting lattice, e.g. ``CameraModel.from_metadata(meta).lattice``. It may be off by
+        Starting lattice, e.g. ``CameraModel.from_metadata(meta).lattice``. It may be off
         by up to about 4 px in origin (less than half a pitch: the fitted origin is the centre
         of the lens nearest to the seed origin), about 10 % in pitch and 0.05 rad in rotation.
     black_level : float, keyword-only
@@ -284,9 +286,10 @@ def fit_lattice(white: np.ndarray, seed: Lattice, *, black_level: float = 168.0,
     modulation = float(np.median(amp[near])) / window_sum / level if near.any() else 0.0
     if central.sum() < 4 or modulation < _MIN_MODULATION:
         raise CalibrationError(
-            f"the white image shows no micro-image pattern at the seed lattice's pitch and rotation "
-            f"({seed.pitch_px:.3f} px) around its origin (modulation {modulation:.2%}); check that it "
-            "is a white image of this camera, exposed, and that the seed comes from its metadata")
+            f"the white image shows no micro-image pattern at the seed lattice's pitch "
+            f"({seed.pitch_px:.3f} px) and rotation ({seed.rotation_rad * 1e3:.2f} mrad) around its origin "
+            f"(modulation {modulation:.2%}); check that it is an exposed white image of this camera and "
+            "that the seed comes from its metadata")
 
     coarse = _coarse_frequencies(z, grid, central, seed)
     p = np.array([0.0, 0.0, coarse.pitch_px, coarse.rotation_rad, coarse.scale_y])
