@@ -341,3 +341,22 @@ def test_centroid_of_a_symmetric_spot_is_its_centre():
     # this small (one reason the fit itself does not use them).
     assert np.allclose(np.stack([out_x, out_y], axis=1), spots, atol=0.05)
     assert np.all(out_w > 0)
+
+
+def test_simulated_camera_folder_end_to_end(tmp_path):
+    # The calibration folder `plenodust simulate` writes: whites at three focus steps (the one at
+    # the picture's focus step also as a dark twin) and one at another zoom.
+    import json
+
+    from analysis.exposure import read_exposure
+    from analysis.simulate import write_scenario
+
+    files = write_scenario(tmp_path / "sim", "tilted-layer", 3, size=SIZE)
+    exposure = read_exposure(files.lfp[0])
+    doc = json.loads(files.scenario_json.read_text())
+    cal = load_calibration(files.calibration_dir, exposure.metadata, serial=exposure.serial)
+    chosen = next(w for w in doc["calibration"] if w["name"] == cal.white_name)
+    assert not chosen["dark"]
+    assert (chosen["zoom_step"], chosen["focus_step"]) == (981, 582)
+    truth = Lattice(**doc["optics"]["lattice"])
+    assert _mean_centre_error(cal.lattice, truth, SIZE) < 0.05
