@@ -388,7 +388,8 @@ def mean_nn_distance_mm(particles: Particles) -> float:
 
 
 def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count: int = 1, size: int = F01_SIZE,
-                   serial: str = DEFAULT_SERIAL, progress: Callable[[str], None] | None = None) -> SimulationFiles:
+                   brightness_dn: float = 1800.0, background_dn: float = 40.0, serial: str = DEFAULT_SERIAL,
+                   progress: Callable[[str], None] | None = None) -> SimulationFiles:
     """Simulate a scenario and write it as the camera's files, with its truth.
 
     Writes ``IMG_nnnn.lfp``, ``IMG_nnnn.RAW`` + ``.TXT`` and ``IMG_nnnn.truth.csv`` for each of
@@ -407,6 +408,8 @@ def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count:
     size : int
         Sensor size in pixels: 3280 for a full F01 frame, less for a centred crop (a multiple
         of 4, so the Bayer phase is kept). A crop keeps only particles whose blur disk is on it.
+    brightness_dn, background_dn : float
+        Median particle brightness and plasma glow (see `make_scenario`).
     serial : str
         Camera serial written into every file's private metadata.
     progress : callable, optional
@@ -424,7 +427,7 @@ def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count:
     out = Path(out_dir)
     (out / "calibration").mkdir(parents=True, exist_ok=True)
     private = simulated_private_metadata(serial)
-    scenario = make_scenario(scenario_name, seed)
+    scenario = make_scenario(scenario_name, seed, brightness_dn=brightness_dn, background_dn=background_dn)
     metadata = simulated_camera_metadata(lens=DEFAULT_LENS, size=size)
     model = CameraModel.from_metadata(metadata)
     files = SimulationFiles(out_dir=out)
@@ -459,6 +462,7 @@ def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count:
     doc = {
         "scenario": scenario.name, "seed": int(seed), "count": int(count), "size": int(size), "serial": serial,
         "particles": len(scenario.particles), "background_dn": scenario.background_dn,
+        "brightness_dn": float(brightness_dn),
         "parameters": scenario.parameters,
         "optics": _optics_doc(model, DEFAULT_LENS),
         "exposures": frames, "calibration": whites["doc"], "truth_columns": TRUTH_COLUMNS,

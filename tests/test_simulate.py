@@ -380,3 +380,18 @@ def test_cli_simulate_writes_the_layout(tmp_path, capsys):
     assert capsys.readouterr().out.strip().endswith("scenario.json")
     assert cli_main(["simulate", "--out", str(tmp_path / "bad"), "--size", "250", "--quiet"]) == 2
     assert "multiple of 4" in capsys.readouterr().err
+
+
+def test_glow_and_brightness_options(tmp_path):
+    dark = read_exposure(write_scenario(tmp_path / "d", "ball", 2, size=256, background_dn=0.0).lfp[0])
+    glow = read_exposure(write_scenario(tmp_path / "g", "ball", 2, size=256, background_dn=200.0,
+                                        brightness_dn=900.0).lfp[0])
+    green = (np.add.outer(np.arange(256), np.arange(256)) % 2) == 1
+    black = dark.model.black_level
+    assert np.median(dark.image[green]) == pytest.approx(black, abs=1)
+    # The glow fills the micro-images like a white image: about 200 DN where a disk is fully lit.
+    assert np.percentile(glow.image[green], 60) - black == pytest.approx(200.0, rel=0.1)
+    # Particle light scales with the brightness asked for (900 vs the default 1800), glow aside.
+    lit_dark = np.percentile(dark.image.astype(np.float64) - black, 99.9)
+    lit_glow = np.percentile(glow.image.astype(np.float64) - black, 99.9) - 200.0
+    assert lit_glow / lit_dark == pytest.approx(0.5, abs=0.03)

@@ -28,6 +28,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--size", type=int, default=F01_SIZE,
                         help=f"sensor size in pixels (default {F01_SIZE}, the full F01); a smaller, centred crop "
                              "(multiple of 4) for quick tests keeps only the particles that fit on it")
+    parser.add_argument("--brightness", type=float, default=1800.0,
+                        help="median particle brightness: DN above black of a fully lit green pixel (default 1800)")
+    parser.add_argument("--background", type=float, default=40.0,
+                        help="plasma glow, a diffuse background in the same units (default 40)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     parser.set_defaults(func=run)
 
@@ -41,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         files = write_scenario(args.out, args.scenario, args.seed, count=args.count, size=args.size,
-                               progress=progress)
+                               brightness_dn=args.brightness, background_dn=args.background, progress=progress)
     except AnalysisError as exc:
         print(f"plenodust simulate: {exc}", file=sys.stderr)
         return 2
