@@ -109,11 +109,24 @@ def _same_mla(a: dict, b: dict) -> bool | None:
     return True
 
 
+def _sensor_size(metadata: dict) -> tuple[Any, Any]:
+    return lookup(metadata, "image.width"), lookup(metadata, "image.height")
+
+
 def _of_this_camera(white: WhiteImage, metadata: dict, serial: str | None) -> bool:
+    size, white_size = _sensor_size(metadata), _sensor_size(white.metadata)
+    if None not in size and None not in white_size and size != white_size:
+        return False
     if serial is not None and white.serial is not None:
         return white.serial == serial
     # Without a serial on one side, the MLA's factory geometry tells cameras apart.
     return _same_mla(white.metadata, metadata) is not False
+
+
+def _describe(white: WhiteImage, metadata: dict) -> str:
+    width, height = _sensor_size(white.metadata)
+    mla = ", other MLA" if _same_mla(white.metadata, metadata) is False else ""
+    return f"{white.serial or 'no serial'} ({width}x{height} px{mla})"
 
 
 def _distance(value: int | None, target: int | None) -> float:
@@ -125,7 +138,8 @@ def _distance(value: int | None, target: int | None) -> float:
 def select_white_image(whites: list[WhiteImage], metadata: dict, *, serial: str | None = None) -> WhiteImage:
     """The white image to calibrate a picture with.
 
-    Same camera (by serial where both sides have one, else by the MLA fields of the metadata),
+    Same camera (same sensor size; same serial where both sides have one, else the same MLA
+    fields in the metadata),
     dark ones skipped (exposure shorter than the mean of this camera's whites, or mean raw value
     below 500, as LFToolbox does), then nearest ``zoomStep``, then nearest ``focusStep``.
 
@@ -148,10 +162,11 @@ def select_white_image(whites: list[WhiteImage], metadata: dict, *, serial: str 
         raise NoWhiteImageError("no white images given; pull the calibration files (MOD_*) from the camera")
     mine = [w for w in whites if _of_this_camera(w, metadata, serial)]
     if not mine:
-        others = sorted({w.serial or "unknown (MLA differs)" for w in whites})
+        width, height = _sensor_size(metadata)
+        others = sorted({_describe(w, metadata) for w in whites})
         raise CameraMismatchError(
-            f"the {len(whites)} white image(s) come from other camera(s) ({', '.join(others)}), "
-            f"not from camera {serial or 'of this picture'}; pull the white images from this camera")
+            f"none of the {len(whites)} white image(s) is of camera {serial or '(no serial)'} with a "
+            f"{width}x{height} px picture; found: {'; '.join(others)}. Pull the white images from this camera")
     durations = [w.exposure_duration_s for w in mine if w.exposure_duration_s is not None]
     mean_duration = float(np.mean(durations)) if durations else None
 

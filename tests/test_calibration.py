@@ -179,7 +179,7 @@ def test_without_serial_the_mla_tells_cameras_apart():
 
 def test_whites_of_another_camera_only():
     whites = [_white("MOD_0000", serial="A111111111"), _white("MOD_0001", serial="A222222222")]
-    with pytest.raises(CameraMismatchError, match="A111111111, A222222222"):
+    with pytest.raises(CameraMismatchError, match=r"A111111111 \(64x64 px\); A222222222 \(64x64 px\)"):
         select_white_image(whites, _picture_metadata(), serial=SERIAL)
 
 
@@ -360,3 +360,10 @@ def test_simulated_camera_folder_end_to_end(tmp_path):
     assert (chosen["zoom_step"], chosen["focus_step"]) == (981, 582)
     truth = Lattice(**doc["optics"]["lattice"])
     assert _mean_centre_error(cal.lattice, truth, SIZE) < 0.05
+
+
+def test_white_of_another_sensor_size_is_not_this_camera():
+    whites = [_white("MOD_0000", size=96), _white("MOD_0001", focus=900)]
+    assert select_white_image(whites, _picture_metadata(), serial=SERIAL).name == "MOD_0001"
+    with pytest.raises(CameraMismatchError, match=r"A202160042 \(96x96 px\)"):
+        select_white_image(whites[:1], _picture_metadata(), serial=SERIAL)
