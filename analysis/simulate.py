@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 
 from ._sim_kernels import paint_disks
 from .atomic_write import write_atomic
-from .camera_model import CameraModel
+from .camera_model import CameraModel, Optics
 from .errors import ParameterError
 from .exposure import Exposure, write_lfp, write_raw_pair
 from .scenarios import Particles, Scenario, make_scenario
@@ -168,7 +168,7 @@ class ParticleTruth:
 
 def particle_truth(model: CameraModel, particles: Particles) -> ParticleTruth:
     """Ideal image quantities of each particle under ``model``'s thin lens (camera-model.md)."""
-    optics = _require_thin_lens(model)
+    optics = _require_thin_lens(model, particles)
     p_m = optics.exit_pupil_m
     fp = np.asarray(optics.image_distance_m(particles.z_mm), dtype=np.float64)
     # Chief ray: s = (X, Y) * P / Z on the MLA plane (metres), whatever the focus.
@@ -179,11 +179,16 @@ def particle_truth(model: CameraModel, particles: Particles) -> ParticleTruth:
     return ParticleTruth(alpha=fp / p_m, x_px=x_px, y_px=y_px, blur_pitches=blur)
 
 
-def _require_thin_lens(model: CameraModel):
+def _require_thin_lens(model: CameraModel, particles: Particles) -> Optics:
+    """The model's optics, if rays can be traced through them to these particles."""
     optics = model.optics
     if optics.exit_pupil_m is None:
         raise ParameterError("the camera model has no finite exit-pupil distance (exitPupilOffset.z), so rays "
                              "cannot be traced; build it from simulated_camera_metadata()")
+    if len(particles) and np.min(particles.z_mm) <= optics.focal_length_m * 1e3:
+        raise ParameterError(f"particles nearer than the focal length ({optics.focal_length_m * 1e3:.2f} mm) form "
+                             "no real image; place them near the focus distance "
+                             f"({optics.focus_distance_mm:.1f} mm)")
     return optics
 
 
@@ -213,7 +218,7 @@ def accumulate_particles(model: CameraModel, particles: Particles, *, rng: np.ra
     ndarray of shape (H, W), float32
         Expected signal in DN (as for a green site) before the optics' blur.
     """
-    optics = _require_thin_lens(model)
+    optics = _require_thin_lens(model, particles)
     p_m, d_m, pix = optics.exit_pupil_m, optics.mla_to_sensor_m, optics.pixel_pitch_m
     radius_m = optics.aperture_diameter_m / 2
     lat = model.lattice

@@ -395,3 +395,10 @@ def test_glow_and_brightness_options(tmp_path):
     lit_dark = np.percentile(dark.image.astype(np.float64) - black, 99.9)
     lit_glow = np.percentile(glow.image.astype(np.float64) - black, 99.9) - 200.0
     assert lit_glow / lit_dark == pytest.approx(0.5, abs=0.03)
+
+
+def test_particles_nearer_than_the_focal_length_are_refused():
+    from analysis.errors import ParameterError
+    model = small_model(64)
+    with pytest.raises(ParameterError, match="focal length"):
+        render_exposure(model, one_particle(0.0, 0.0, 5.0), seed=0)
