@@ -173,8 +173,9 @@ class BulkOnlyTransport:
         tag = self._tag
         expected = len(data_out) if data_out is not None else data_in_length
         cbw = p.encode_cbw(cdb, tag=tag, data_length=expected, direction_in=data_in_length > 0)
-        log.debug("CBW tag %d cdb %s out %s in %d", tag, cdb[:7].hex(), None if data_out is None else len(data_out),
-                  data_in_length)
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("CBW tag %d cdb %s out %s in %d", tag, cdb[:7].hex(),
+                      None if data_out is None else len(data_out), data_in_length)
         received = memoryview(b"")
         try:
             self._write(cbw, "sending a command")

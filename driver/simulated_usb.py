@@ -32,7 +32,8 @@ from driver.simulated import CameraFolder, FaultPlan, SimulatedCamera
 
 _IDLE, _DATA_OUT, _DATA_IN, _STATUS = "idle", "data-out", "data-in", "status"
 _STRINGS = {1: "Lytro, Inc.", 2: "Lytro Light Field Camera"}  # 3: serial, from the identity
-_WIRE_DATA_LIMIT = 4096  # IN transfers longer than this are logged by length only
+_WIRE_DATA_LIMIT = 4096
+_NO_FAULTS: frozenset[str] = frozenset()  # IN transfers longer than this are logged by length only
 
 
 def _pipe_error() -> usb.core.USBError:
@@ -109,7 +110,7 @@ class SimulatedBackend(usb.backend.IBackend):
         self._reply: bytes | memoryview = b""
         self._ok = True
         self._residue = 0
-        self._hits: set[str] = set()
+        self._hits: frozenset[str] | set[str] = _NO_FAULTS
 
     # -- test and demo controls ----------------------------------------------------
 
@@ -320,8 +321,9 @@ class SimulatedBackend(usb.backend.IBackend):
             self.halted[p.EP_IN] = self.halted[p.EP_OUT] = True
             return
         self._cbw = cbw
-        self._out.clear()
-        self._hits = set()
+        if self._out:
+            self._out.clear()
+        self._hits = _NO_FAULTS
         if cbw.data_length and not cbw.direction_in:
             self._phase = _DATA_OUT
             return

@@ -1,0 +1,110 @@
+"""Throughput of a full 16 MB F01 raw through the simulated USB path, against copying the bytes.
+
+What is timed (best of N, after a warm-up):
+
+* ``memcpy``: one copy of the 16,137,600 bytes (``bytes(bytearray)``), the least any
+  transfer can cost;
+* ``chunked copy``: the copies a bulk transfer implies, chunk by chunk (file bytes -> a
+  transfer buffer -> the result) and the final ``bytes``;
+* ``driver``: ``Camera.read_file`` over pyusb and the simulated backend: load-file,
+  length query, then one CBW / data / CSW exchange per chunk, all through pyusb's own code
+  and the byte-level device emulation.
+
+The driver's overhead is printed relative to the chunked copy (the target: under 10 % over
+the raw copy of the bytes), and per command (CBW, data, CSW), for several chunk sizes; lyli
+uses 64 KiB, the driver's default. Peak memory of one read is measured with
+tracemalloc.
+
+Run: .venv/bin/python bench/bench_usb.py
+"""
+
+from __future__ import annotations
+
+import array
+import os
+import sys
+import tempfile
+import time
+import tracemalloc
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import driver  # noqa: E402
+from driver.simulated_usb import SimulatedBackend  # noqa: E402
+
+RAW_BYTES = 16_137_600  # 3280 x 3280 pixels, 12 bit packed
+CAMERA_PATH = "I:\\DCIM\\100PHOTO\\IMG_0001.RAW"
+REPEAT = 11
+CHUNKS = (32 * 1024, 64 * 1024, 256 * 1024, 1024 * 1024, 2 * 1024 * 1024)
+
+
+def best(fn, repeat: int = REPEAT) -> float:
+    fn()  # warm-up
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def chunked_copy(src: bytes, chunk: int) -> bytes:
+    """The copies of a bulk transfer, with the driver's allocations: device -> buffer -> result."""
+    view = memoryview(src)
+    buffer = memoryview(array.array("B", bytes(chunk)))
+    out = bytearray(len(src))
+    result = memoryview(out)
+    for offset in range(0, len(src), chunk):
+        n = min(chunk, len(src) - offset)
+        buffer[:n] = view[offset:offset + n]
+        result[offset:offset + n] = buffer[:n]
+    return bytes(out)
+
+
+def interleaved(a, b, repeat: int = REPEAT) -> tuple[float, float]:
+    """Best times of ``a`` and ``b``, run alternately so that machine load hits both alike."""
+    a(), b()
+    ta, tb = [], []
+    for _ in range(repeat):
+        for fn, times in ((a, ta), (b, tb)):
+            t0 = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t0)
+    return min(ta), min(tb)
+
+
+def main() -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        raw = os.urandom(RAW_BYTES)
+        (folder / "IMG_0001.RAW").write_bytes(raw)
+        (folder / "IMG_0001.TXT").write_bytes(b"{}")
+        mb = RAW_BYTES / 1e6
+
+        t_memcpy = best(lambda: bytes(bytearray(raw)))
+        print(f"16 MB F01 raw ({RAW_BYTES} bytes), best of {REPEAT}")
+        print(f"memcpy                 {t_memcpy * 1e3:8.2f} ms  {mb / t_memcpy:8.0f} MB/s")
+        print(f"{'chunk':>8} {'chunked copy':>14} {'driver':>10} {'MB/s':>7} {'vs chunked':>11} "
+              f"{'per command':>12}")
+        for chunk in CHUNKS:
+            with driver.open_usb(SimulatedBackend(folder), chunk_size=chunk) as cam:
+                assert cam.read_file(CAMERA_PATH) == raw
+                t_copy, t_driver = interleaved(lambda: chunked_copy(raw, chunk), lambda: cam.read_file(CAMERA_PATH))
+            commands = -(-RAW_BYTES // chunk)
+            print(f"{chunk // 1024:>6} K {t_copy * 1e3:11.2f} ms {t_driver * 1e3:7.2f} ms {mb / t_driver:7.0f} "
+                  f"{(t_driver / t_copy - 1) * 100:+10.1f}% {(t_driver - t_copy) / commands * 1e6:9.1f} us")
+
+        with driver.open_usb(SimulatedBackend(folder)) as cam:
+            cam.read_file(CAMERA_PATH)
+            tracemalloc.start()
+            data = cam.read_file(CAMERA_PATH)
+            _, peak = tracemalloc.get_traced_memory()
+            tracemalloc.stop()
+        print(f"peak memory of one read (64 K chunks): {peak / 1e6:.1f} MB "
+              f"({peak / len(data):.2f} x the file)")
+
+
+if __name__ == "__main__":
+    main()
