@@ -187,6 +187,7 @@ def cdb_test_unit_ready(*, length: int = 16) -> bytes:
 
 
 def cdb_load_hardware_info(*, length: int = 16) -> bytes:
+    """Load hardware info (``C2 00 00``); then query its length and download 644 bytes."""
     return encode_cdb(OP_LOAD, LOAD_HARDWARE_INFO, length=length)
 
 
@@ -196,22 +197,27 @@ def cdb_load_file(*, length: int = 16) -> bytes:
 
 
 def cdb_load_picture_list(*, length: int = 16) -> bytes:
+    """Load the picture list (``C2 00 02``); then query its length and download it."""
     return encode_cdb(OP_LOAD, LOAD_PICTURE_LIST, length=length)
 
 
 def cdb_query_length(*, length: int = 16) -> bytes:
+    """Query the length of the loaded content (``C6 00 00``): 4 bytes, uint32 LE, 0 = not found."""
     return encode_cdb(OP_QUERY, QUERY_LENGTH, length=length)
 
 
 def cdb_query_time(*, length: int = 16) -> bytes:
+    """Query the camera's clock (``C6 00 03``): 14 bytes."""
     return encode_cdb(OP_QUERY, QUERY_TIME, length=length)
 
 
 def cdb_query_battery(*, length: int = 16) -> bytes:
+    """Query the battery level (``C6 00 06``): float32 LE percent."""
     return encode_cdb(OP_QUERY, QUERY_BATTERY, length=length)
 
 
 def cdb_take_picture(*, length: int = 16) -> bytes:
+    """Take a picture (``C0 00 00``); documented for Wi-Fi only."""
     return encode_cdb(OP_CONTROL, CONTROL_TAKE_PICTURE, length=length)
 
 
@@ -265,6 +271,7 @@ def _cstr(raw: bytes) -> str:
 
 
 def decode_hardware_info(data: bytes) -> HardwareInfo:
+    """Parse the 644-byte hardware info (strings at 0x000, 0x100, 0x180, 0x200; int32 at 0x280)."""
     if len(data) < HARDWARE_INFO_LENGTH:
         raise ProtocolError(f"hardware info has {HARDWARE_INFO_LENGTH} bytes, got {len(data)}")
     manufacturer, serial, build, software, unknown = HARDWARE_INFO_STRUCT.unpack_from(bytes(data))
@@ -272,11 +279,13 @@ def decode_hardware_info(data: bytes) -> HardwareInfo:
 
 
 def encode_hardware_info(info: HardwareInfo) -> bytes:
+    """The 644-byte hardware info reply (for the simulated camera)."""
     return HARDWARE_INFO_STRUCT.pack(info.manufacturer.encode("ascii"), info.serial.encode("ascii"),
                                      info.build.encode("ascii"), info.software.encode("ascii"), info.unknown)
 
 
 def decode_length(data: bytes) -> int:
+    """The uint32 LE of a length query."""
     if len(data) < LENGTH_REPLY:
         raise ProtocolError(f"the length reply has {LENGTH_REPLY} bytes, got {len(data)}")
     return struct.unpack_from("<I", bytes(data))[0]
@@ -287,6 +296,7 @@ def encode_length(value: int) -> bytes:
 
 
 def decode_battery(data: bytes) -> float:
+    """The float32 LE percent of a battery query."""
     if len(data) < BATTERY_REPLY:
         raise ProtocolError(f"the battery reply has {BATTERY_REPLY} bytes, got {len(data)}")
     return struct.unpack_from("<f", bytes(data))[0]
@@ -375,6 +385,7 @@ def _parse_taken(text: str) -> datetime:
 
 
 def decode_picture_entry(data: bytes) -> Picture:
+    """Parse one 128-byte picture-list entry."""
     if len(data) != PICTURE_ENTRY_LENGTH:
         raise ProtocolError(f"a picture-list entry has {PICTURE_ENTRY_LENGTH} bytes, got {len(data)}")
     (folder_name, prefix, folder_no, file_no, unknown, starred, lam, pid, taken,
@@ -385,6 +396,7 @@ def decode_picture_entry(data: bytes) -> Picture:
 
 
 def encode_picture_entry(picture: Picture) -> bytes:
+    """One 128-byte picture-list entry (for the simulated camera)."""
     return PICTURE_ENTRY_STRUCT.pack(
         picture.folder_name.encode("ascii"), picture.file_prefix.encode("ascii"), picture.folder_number,
         picture.file_number, picture.unknown, int(picture.starred), picture.last_lambda,
@@ -415,6 +427,7 @@ def decode_picture_list(data: bytes) -> list[Picture]:
 
 
 def encode_picture_list(pictures: list[Picture], *, record_definitions: tuple[tuple[int, int], ...] = ()) -> bytes:
+    """A picture list with 128-byte entries; the meaning of record definitions is unknown."""
     out = bytearray(PICTURE_LIST_HEADER.pack(1, PICTURE_ENTRY_LENGTH, len(record_definitions)))
     for index, offset in record_definitions:
         out += struct.pack("<ii", index, offset)
@@ -433,6 +446,7 @@ def picture_id(raw: bytes) -> str:
 
 
 def calibration_path(index: int, extension: str) -> str:
+    """``C:\\T1CALIB\\MOD_nnnn.<extension>``."""
     return f"{CALIBRATION_ROOT}\\MOD_{index:04d}.{extension}"
 
 
@@ -461,6 +475,7 @@ def encode_wifi_header(command: bytes, *, length: int, flags: int) -> bytes:
 
 
 def decode_wifi_header(data: bytes) -> WifiHeader:
+    """Parse a 28-byte Wi-Fi header, checking the magic."""
     if len(data) != WIFI_HEADER_LENGTH:
         raise ProtocolError(f"a Wi-Fi header has {WIFI_HEADER_LENGTH} bytes, got {len(data)}")
     magic, length, flags, command = WIFI_HEADER_STRUCT.unpack(bytes(data))

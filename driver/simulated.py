@@ -187,7 +187,7 @@ class FaultPlan:
     stall         stalls the bulk-IN pipe in the data phase; after clear halt its status
                   wrapper reports "failed" (USB only)
     timeout       does not answer the data phase (the transfer times out at once)
-    short         sends only half of the requested bytes (the residue says so)
+    short         sends only half of the requested bytes, rounded up (the residue says so)
     bad_csw_signature  status wrapper starts with ``USBX`` (USB only)
     bad_csw_tag   status wrapper carries the wrong tag (USB only)
     phase_error   status wrapper reports a phase error (USB only)

@@ -357,7 +357,7 @@ class SimulatedBackend(usb.backend.IBackend):
         reply = self._reply if self._ok else b""
         n = min(len(buff) * buff.itemsize, len(reply))
         if "short" in hits:
-            n //= 2
+            n = (n + 1) // 2
         memoryview(buff).cast("B")[:n] = reply[:n]
         self._residue = self._cbw.data_length - n
         self._phase = _STATUS

@@ -142,47 +142,51 @@ class SimulatedWifiServer:
 
     def _serve(self, conn: socket.socket) -> None:
         try:
-            while not self._stop.is_set():
-                try:
-                    header = p.decode_wifi_header(bytes(_recv_exact(conn, p.WIFI_HEADER_LENGTH)))
-                except (ProtocolError, OSError):
-                    return
-                reading = bool(header.flags & p.WIFI_FLAG_READ)
-                data_out = None if reading else bytes(_recv_exact(conn, header.length)) if header.length else b""
-                hits: set[str] = set()
-                with self._lock:
-                    if header.command[0] == p.OP_DOWNLOAD:
-                        hits = self.faults.next_download()
-                    if "gone" in hits:
-                        self._stop.set()
-                        self._close_listeners()
-                        return
-                    if "reset" in hits:
-                        self.camera.reboot(not_ready=0)  # Wi-Fi has no TEST UNIT READY to wait on
-                        return
-                    if "timeout" in hits:
-                        continue  # swallow the command; the client times out and reconnects
-                    taken_before = {pic.id for pic in self.camera.folder.pictures()} \
-                        if header.command[0] == p.OP_CONTROL else None
-                    ok, reply = self.camera.handle(header.command, data_out=data_out,
-                                                   data_in_length=header.length if reading else 0)
-                if not ok:
-                    reply = b""
-                if "short" in hits:
-                    reply = reply[:len(reply) // 2]
-                length = len(reply) if reading else header.length
-                conn.sendall(p.encode_wifi_header(header.command, length=length, flags=p.WIFI_FLAG_RESPONSE))
-                if reading and length:
-                    conn.sendall(reply)
-                if taken_before is not None:
-                    for pic in self.camera.folder.pictures():
-                        if pic.id not in taken_before:
-                            self.announce(pic.id)
+            while not self._stop.is_set() and self._serve_one(conn):
+                pass
+        except (ProtocolError, OSError):
+            pass  # the client went away or sent garbage: drop the connection, as the camera would
         finally:
             with self._lock:
                 if conn in self._connections:
                     self._connections.remove(conn)
             _close(conn)
+
+    def _serve_one(self, conn: socket.socket) -> bool:
+        """Answer one framed command; False when the connection should end."""
+        header = p.decode_wifi_header(bytes(_recv_exact(conn, p.WIFI_HEADER_LENGTH)))
+        reading = bool(header.flags & p.WIFI_FLAG_READ)
+        data_out = None if reading else bytes(_recv_exact(conn, header.length)) if header.length else b""
+        hits: set[str] = set()
+        with self._lock:
+            if header.command[0] == p.OP_DOWNLOAD:
+                hits = self.faults.next_download()
+            if "gone" in hits:
+                self._stop.set()
+                self._close_listeners()
+                return False
+            if "reset" in hits:
+                self.camera.reboot(not_ready=0)  # Wi-Fi has no TEST UNIT READY to wait on
+                return False
+            if "timeout" in hits:
+                return True  # swallow the command; the client times out and reconnects
+            taking = header.command[0] == p.OP_CONTROL
+            before = {pic.id for pic in self.camera.folder.pictures()} if taking else set()
+            ok, reply = self.camera.handle(header.command, data_out=data_out,
+                                           data_in_length=header.length if reading else 0)
+        if not ok:
+            reply = b""
+        if "short" in hits:
+            reply = reply[:(len(reply) + 1) // 2]
+        length = len(reply) if reading else header.length
+        conn.sendall(p.encode_wifi_header(header.command, length=length, flags=p.WIFI_FLAG_RESPONSE))
+        if reading and length:
+            conn.sendall(reply)
+        if taking:
+            for pic in self.camera.folder.pictures():
+                if pic.id not in before:
+                    self.announce(pic.id)
+        return True
 
 
 def _close(sock: socket.socket) -> None:

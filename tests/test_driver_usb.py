@@ -286,6 +286,28 @@ def test_bad_status_wrapper_triggers_reset_recovery(camera, backend, folder, kin
     assert backend.resets == 1
 
 
+def test_persistent_stall_ends_in_a_clear_error(camera, backend):
+    backend.inject("stall", count=None)
+    with pytest.raises(driver.CommandFailed, match="failed at byte 0 .* 4 times in a row"):
+        camera.read_file(RAW1)
+
+
+def test_persistent_short_reads_still_give_the_whole_file(camera, backend, folder):
+    backend.inject("short", count=None)
+    assert camera.read_file(RAW1) == (folder / "IMG_0001.RAW").read_bytes()
+    assert len(downloads(backend)) > 2 * (RAW1_SIZE // CHUNK)
+
+
+def test_atomic_write_leaves_nothing_when_writing_fails(tmp_path):
+    target = tmp_path / "IMG_0001.RAW"
+    with pytest.raises(TypeError):
+        driver.write_atomic(target, object())  # not bytes: fails after the temporary file exists
+    assert list(tmp_path.iterdir()) == []
+    target.write_bytes(b"old")
+    driver.write_atomic(target, b"new")
+    assert target.read_bytes() == b"new" and [f.name for f in tmp_path.iterdir()] == ["IMG_0001.RAW"]
+
+
 def test_camera_gone_mid_download_raises_and_leaves_no_file(camera, backend, tmp_path):
     pic = camera.pictures()[0]
     backend.inject("gone", after=5)
