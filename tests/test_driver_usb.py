@@ -160,6 +160,11 @@ def test_multi_chunk_download_is_byte_for_byte(camera, backend, folder):
     offsets = downloads(backend)
     n_full, rest = divmod(RAW1_SIZE, CHUNK)
     assert offsets == [(k * CHUNK, CHUNK) for k in range(n_full)] + [(n_full * CHUNK, rest)]
+    # The second download command as sent, against section 2.1/2.2 byte by byte.
+    sent = [t.data for t in backend.wire if t.data[:4] == b"USBC" and t.data[15] == 0xC4]
+    tag = sent[1][4:8]
+    assert sent[1] == bytes.fromhex("55534243") + tag + bytes.fromhex("00400000 80 00 10 c4 00 01 00 40 00 00") + bytes(9)
+    assert sent[-1][8:12] == rest.to_bytes(4, "little")
 
 
 def test_twelve_byte_cdbs_work_too(backend, folder):
