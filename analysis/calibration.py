@@ -139,9 +139,9 @@ def select_white_image(whites: list[WhiteImage], metadata: dict, *, serial: str 
     """The white image to calibrate a picture with.
 
     Same camera (same sensor size; same serial where both sides have one, else the same MLA
-    fields in the metadata),
-    dark ones skipped (exposure shorter than the mean of this camera's whites, or mean raw value
-    below 500, as LFToolbox does), then nearest ``zoomStep``, then nearest ``focusStep``.
+    fields in the metadata); dark ones skipped (exposure shorter than the mean of this camera's
+    whites, or mean raw value below 500, as LFToolbox does); then nearest ``zoomStep``, then
+    nearest ``focusStep``.
 
     Parameters
     ----------
