@@ -164,6 +164,32 @@ def test_defocused_particle_spreads_over_predicted_blur_disk(blur_target: float)
     assert np.all(np.abs(np.array(counts) / steiner - 1) < 0.25)
 
 
+@pytest.mark.parametrize("blur_target, side", [(3.0, 1), (3.0, -1), (6.0, 1), (6.0, -1)])
+def test_camera_model_lookup_refocuses_simulated_light_at_the_truth(blur_target: float, side: int):
+    """camera-model.md's look-up table read on simulated pixels: each lit pixel's lens centre
+    ``s`` and aperture point ``u`` define a ray; the plane ``alpha P`` where those rays meet
+    best (least squares) and the point where they meet are the particle's truth."""
+    model = small_model(320)
+    o = model.optics
+    fp = o.exit_pupil_m / (1 - side * blur_target * o.lens_pitch_m / o.aperture_diameter_m)
+    p = one_particle(0.04, -0.02, 1e3 / (1 / o.focal_length_m - 1 / fp))
+    truth = particle_truth(model, p)
+    signal = accumulate_particles(model, p, rng=np.random.default_rng(3))
+    rows, cols = np.nonzero(signal > 0)
+    x, y = cols + 0.5, rows + 0.5
+    u = np.stack(model.aperture_coordinates(x, y), axis=1)
+    i, j, _, _ = model.micro_image_offsets(x, y)
+    a = np.stack(model.lens_plane_position_m(i, j), axis=1) - u   # ray direction per unit alpha
+    w = signal[rows, cols].astype(np.float64)
+    w /= w.sum()
+    du, da = u - w @ u, a - w @ a
+    alpha = -np.sum(w[:, None] * du * da) / np.sum(w[:, None] * da * da)
+    meet = (w @ u + alpha * (w @ a)) / alpha * o.projection_factor / o.pixel_pitch_m  # chief ray on the MLA, px
+    assert alpha == pytest.approx(truth.alpha[0], abs=3e-4)
+    assert meet[0] + model.lattice.origin_x == pytest.approx(truth.x_px[0], abs=0.1)
+    assert meet[1] + model.lattice.origin_y == pytest.approx(truth.y_px[0], abs=0.1)
+
+
 def test_green_sites_see_the_laser_red_and_blue_little():
     model = small_model(128)
     p = one_particle(0.0, 0.0, model.optics.focus_distance_mm)
