@@ -21,24 +21,36 @@ FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 
 @njit(cache=True)
-def value_histogram(image_flat, pixel_index, weight, black, beta, divide, lo, inv_width, hist):  # pragma: no cover
-    """Histogram of ``(raw + dither - black - beta * weight)`` (divided by ``weight`` if ``divide``)
-    over all samples; bin ``b`` is centred on ``lo + b / inv_width``, values outside go to the
-    end bins.
+def gather_subsample(image_flat, pixel_index, weight, black, stride):  # pragma: no cover - numba
+    """``raw + dither - black`` and ``weight`` of every ``stride``-th sample (float32).
 
     The dither (a golden-ratio sequence over [-0.5, 0.5)) spreads each integer raw count over
     the interval it stands for, so that medians and MADs of 1 ... 3 DN noise are not rounded
     to whole DN.
     """
-    n_bins = hist.size
+    n = (pixel_index.size + stride - 1) // stride
+    values = np.empty(n, np.float32)
+    weights = np.empty(n, np.float32)
     phase = 0.0
-    for k in range(pixel_index.size):
+    for m in range(n):
+        k = m * stride
         phase += 0.6180339887498949
         if phase >= 1.0:
             phase -= 1.0
-        val = image_flat[pixel_index[k]] + (phase - 0.5) - black - beta * weight[k]
+        values[m] = image_flat[pixel_index[k]] + (phase - 0.5) - black
+        weights[m] = weight[k]
+    return values, weights
+
+
+@njit(cache=True)
+def value_histogram(values, weights, beta, divide, lo, inv_width, hist):  # pragma: no cover - numba
+    """Histogram of ``values - beta * weights`` (divided by ``weights`` if ``divide``); bin ``b``
+    is centred on ``lo + b / inv_width``, values outside go to the end bins."""
+    n_bins = hist.size
+    for k in range(values.size):
+        val = values[k] - beta * weights[k]
         if divide:
-            val = val / weight[k]
+            val = val / weights[k]
         b = int(math.floor((val - lo) * inv_width + 0.5))
         if b < 0:
             b = 0
@@ -50,99 +62,105 @@ def value_histogram(image_flat, pixel_index, weight, black, beta, divide, lo, in
 @njit(parallel=True, cache=True)
 def select_samples(image_flat, pixel_index, weight, keep, black, beta, threshold, n_chunks):  # pragma: no cover
     """Samples with ``raw - black - beta * weight > threshold`` (and ``keep``), as
-    (ids int32, values float32); order is preserved. ``keep`` is a bool mask over samples."""
+    (ids int32, values float32); order is preserved. ``keep`` is a bool mask over samples.
+
+    One pass over the image: chunk ``c`` writes its hits from the start of its own stretch of
+    a full-length buffer (only the touched pages of which are ever backed by memory), then the
+    stretches are packed.
+    """
     n = pixel_index.size
     step = (n + n_chunks - 1) // n_chunks
-    counts = np.zeros(n_chunks + 1, np.int64)
+    all_ids = np.empty(n, np.int32)
+    all_values = np.empty(n, np.float32)
+    counts = np.zeros(n_chunks, np.int64)
     for c in prange(n_chunks):
-        cnt = 0
-        for k in range(c * step, min(n, (c + 1) * step)):
-            if keep[k] and image_flat[pixel_index[k]] - black - beta * weight[k] > threshold:
-                cnt += 1
-        counts[c + 1] = cnt
-    starts = np.cumsum(counts)
-    ids = np.empty(starts[-1], np.int32)
-    values = np.empty(starts[-1], np.float32)
-    for c in prange(n_chunks):
-        pos = starts[c]
+        pos = c * step
         for k in range(c * step, min(n, (c + 1) * step)):
             val = image_flat[pixel_index[k]] - black - beta * weight[k]
             if keep[k] and val > threshold:
-                ids[pos] = k
-                values[pos] = val
+                all_ids[pos] = k
+                all_values[pos] = val
                 pos += 1
+        counts[c] = pos - c * step
+    total = 0
+    for c in range(n_chunks):
+        total += counts[c]
+    ids = np.empty(total, np.int32)
+    values = np.empty(total, np.float32)
+    pos = 0
+    for c in range(n_chunks):
+        for m in range(counts[c]):
+            ids[pos + m] = all_ids[c * step + m]
+            values[pos + m] = all_values[c * step + m]
+        pos += counts[c]
     return ids, values
 
 
 @njit(parallel=True, fastmath=FASTMATH, cache=True)
-def splat(ids, values, lens, lens_site, u, v, inv_basis, coeffs, n_i, n_j, acc):  # pragma: no cover
-    """Shift-and-add every sample onto the 3 lens sites of its triangle, for every alpha.
+def splat(ids, values, lens, lens_site, u, v, inv_basis, coeffs, n_i, n_j, band_start, acc):  # pragma: no cover
+    """Shift-and-add samples onto the 3 lens sites of their triangle, for every alpha at once.
 
     Sample ``ids[k]`` with value ``values[k]`` moves from its lens site by
     ``inv_basis @ (u, v) * coeffs[a]`` lattice steps (``coeffs = 1/alpha - 1``) and is split
-    barycentrically. ``acc`` has shape (n_chunks, n_j * n_i, n_alpha), zeroed by the caller;
-    chunk ``c`` of the samples adds into ``acc[c]`` only, so threads never share an output.
-    Contributions whose triangle leaves the site grid are dropped (the normalisation drops the
-    same ones).
+    barycentrically into ``acc`` (n_j * n_i, n_alpha), which this kernel zeroes first.
+
+    Threads never write the same site: samples come ordered by lens row and are cut into bands
+    of ``H`` site rows (``band_start[b]`` is the first sample of band ``b``), where the caller
+    makes sure no sample moves more than ``(H - 1) // 2`` rows, so that bands two apart never
+    touch the same row; even bands run in parallel, then odd ones. Contributions whose triangle leaves the site
+    grid are dropped (the normalisation drops the same ones).
     """
-    n_chunks = acc.shape[0]
-    n_alpha = coeffs.size
-    n = ids.size
-    step = (n + n_chunks - 1) // n_chunks
+    n_sites, n_alpha = acc.shape
+    for row in prange(n_j):
+        for s in range(row * n_i, (row + 1) * n_i):
+            for a in range(n_alpha):
+                acc[s, a] = 0.0
     b00 = np.float32(inv_basis[0, 0])
     b01 = np.float32(inv_basis[0, 1])
     b10 = np.float32(inv_basis[1, 0])
     b11 = np.float32(inv_basis[1, 1])
-    for c in prange(n_chunks):
-        out = acc[c]
-        for k in range(c * step, min(n, (c + 1) * step)):
-            s = ids[k]
-            val = values[k]
-            lk = lens[s]
-            base_i = lens_site[lk, 0]
-            base_j = lens_site[lk, 1]
-            du = b00 * u[s] + b01 * v[s]
-            dv = b10 * u[s] + b11 * v[s]
-            for a in range(n_alpha):
-                fi = base_i + du * coeffs[a]
-                fj = base_j + dv * coeffs[a]
-                i0 = int(math.floor(fi))
-                j0 = int(math.floor(fj))
-                if i0 < 0 or j0 < 0 or i0 + 1 >= n_i or j0 + 1 >= n_j:
-                    continue
-                wa = fi - i0
-                wb = fj - j0
-                site = j0 * n_i + i0
-                if wa + wb < 1.0:
-                    out[site, a] += val * (1.0 - wa - wb)
-                    out[site + 1, a] += val * wa
-                    out[site + n_i, a] += val * wb
-                else:
-                    out[site + n_i + 1, a] += val * (wa + wb - 1.0)
-                    out[site + 1, a] += val * (1.0 - wb)
-                    out[site + n_i, a] += val * (1.0 - wa)
+    n_bands = band_start.size - 1
+    for parity in range(2):
+        for q in prange((n_bands - parity + 1) // 2):
+            band = 2 * q + parity
+            for k in range(band_start[band], band_start[band + 1]):
+                s = ids[k]
+                val = values[k]
+                lk = lens[s]
+                base_i = lens_site[lk, 0]
+                base_j = lens_site[lk, 1]
+                du = b00 * u[s] + b01 * v[s]
+                dv = b10 * u[s] + b11 * v[s]
+                for a in range(n_alpha):
+                    fi = base_i + du * coeffs[a]
+                    fj = base_j + dv * coeffs[a]
+                    i0 = int(math.floor(fi))
+                    j0 = int(math.floor(fj))
+                    if i0 < 0 or j0 < 0 or i0 + 1 >= n_i or j0 + 1 >= n_j:
+                        continue
+                    wa = fi - i0
+                    wb = fj - j0
+                    site = j0 * n_i + i0
+                    if wa + wb < 1.0:
+                        acc[site, a] += val * (1.0 - wa - wb)
+                        acc[site + 1, a] += val * wa
+                        acc[site + n_i, a] += val * wb
+                    else:
+                        acc[site + n_i + 1, a] += val * (wa + wb - 1.0)
+                        acc[site + 1, a] += val * (1.0 - wb)
+                        acc[site + n_i, a] += val * (1.0 - wa)
 
 
 @njit(parallel=True, fastmath=FASTMATH, cache=True)
-def reduce_chunks(acc, scale):  # pragma: no cover - numba
-    """``acc[0] = sum(acc, axis=0) * scale`` (in place), in parallel over sites."""
-    n_chunks, n_sites, n_alpha = acc.shape
-    for s in prange(n_sites):
-        for a in range(n_alpha):
-            total = acc[0, s, a]
-            for c in range(1, n_chunks):
-                total += acc[c, s, a]
-            acc[0, s, a] = total * scale[s, a]
-
-
-@njit(parallel=True, fastmath=FASTMATH, cache=True)
-def interpolate_to_grid(site_values, valid, n_i, n_j, origin, d_col, d_row, out):  # pragma: no cover
-    """Barycentric interpolation from the lens-site grid onto a regular image grid.
+def interpolate_to_grid(site_sums, site_scale, n_i, n_j, origin, d_col, d_row, out):  # pragma: no cover
+    """Barycentric interpolation of ``site_sums * site_scale`` from the lens-site grid onto a
+    regular image grid.
 
     Output pixel ``(col, row)`` sits at site coordinates ``origin + col * d_col + row * d_row``.
-    ``site_values`` (n_sites, n_alpha); ``valid`` (n_sites, n_alpha) bool marks sites that
-    received enough light to be trusted. Each pixel is the weighted mean of the valid corners
-    of its triangle (0 where none is valid). ``out`` has shape (n_alpha, height, width).
+    ``site_sums`` and ``site_scale`` have shape (n_sites, n_alpha); a site with
+    ``site_scale == 0`` received too little light to be trusted and is left out: each pixel is
+    the weighted mean of the valid corners of its triangle (0 where none is valid).
+    ``out`` has shape (n_alpha, height, width).
     """
     n_alpha, height, width = out.shape
     for row in prange(height):
@@ -167,14 +185,17 @@ def interpolate_to_grid(site_values, valid, n_i, n_j, origin, d_col, d_row, out)
             for a in range(n_alpha):
                 num = 0.0
                 den = 0.0
-                if valid[sa, a]:
-                    num += wx * site_values[sa, a]
+                ga = site_scale[sa, a]
+                gb = site_scale[sb, a]
+                gc = site_scale[sc, a]
+                if ga > 0.0:
+                    num += wx * site_sums[sa, a] * ga
                     den += wx
-                if valid[sb, a]:
-                    num += wy * site_values[sb, a]
+                if gb > 0.0:
+                    num += wy * site_sums[sb, a] * gb
                     den += wy
-                if valid[sc, a]:
-                    num += wz * site_values[sc, a]
+                if gc > 0.0:
+                    num += wz * site_sums[sc, a] * gc
                     den += wz
                 out[a, row, col] = num / den if den > 1e-6 else 0.0
 

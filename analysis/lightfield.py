@@ -89,8 +89,10 @@ class LightFieldTable:
     rim_px: float
     black_level: float
     grid: ImageGrid
-    # Per-alpha normalisations, computed on first use (analysis.refocus); not part of equality.
+    # Per-alpha normalisations, computed on first use (analysis.refocus) and saved with the table.
     _normalisations: dict = field(default_factory=dict, compare=False, repr=False)
+    # Work buffers and masks of analysis.refocus, kept between calls; never saved.
+    _scratch: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
     def n_samples(self) -> int:
@@ -119,6 +121,13 @@ class LightFieldTable:
         """ndarray (L, 2) float32: each lens's ``(column, row)`` on the dense site grid."""
         i0, j0 = self.site_origin
         return np.stack([self.lens_ij[:, 0] - i0, self.lens_ij[:, 1] - j0], axis=1).astype(np.float32)
+
+    @cached_property
+    def max_row_shift(self) -> float:
+        """Largest ``|row shift|`` of any sample on the site grid per unit of ``1/alpha - 1``."""
+        inv = self.inverse_basis_m
+        dv = inv[1, 0] * self.u_m.astype(np.float64) + inv[1, 1] * self.v_m.astype(np.float64)
+        return float(np.abs(dv).max()) if dv.size else 0.0
 
     @cached_property
     def inverse_basis_m(self) -> np.ndarray:

@@ -157,10 +157,10 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
     """
     flat = _check_image(image, table)
     black = table.black_level if black_level is None else float(black_level)
+    values, weights = kern.gather_subsample(flat, table.pixel_index, table.weight, float(black), _stride(table))
     if background is None:
         hist = np.zeros(_HIST_BINS, dtype=np.int64)
-        kern.value_histogram(flat, table.pixel_index, table.weight, black, 0.0, True,
-                             _HIST_LO, 1.0 / _HIST_BIN_DN, hist)
+        kern.value_histogram(values, weights, 0.0, True, _HIST_LO, 1.0 / _HIST_BIN_DN, hist)
         bg, _ = _median_and_sigma(hist, _HIST_LO, _HIST_BIN_DN)
     else:
         bg = float(background)
@@ -171,8 +171,7 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
         if noise_sigmas < 0:
             raise ParameterError(f"noise_sigmas must be >= 0 or None, got {noise_sigmas}")
         hist = np.zeros(_HIST_BINS, dtype=np.int64)
-        kern.value_histogram(flat, table.pixel_index, table.weight, black, bg, False,
-                             _HIST_LO, 1.0 / _HIST_BIN_DN, hist)
+        kern.value_histogram(values, weights, float(bg), False, _HIST_LO, 1.0 / _HIST_BIN_DN, hist)
         centre, sigma = _median_and_sigma(hist, _HIST_LO, _HIST_BIN_DN)
         threshold = centre + float(noise_sigmas) * max(sigma, _MIN_SIGMA_DN)
     keep = _all_samples(table)
@@ -181,11 +180,16 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
     return Samples(ids=ids, values=values, background=float(bg), sigma=float(sigma), threshold=float(threshold))
 
 
+def _stride(table: LightFieldTable) -> int:
+    """Every how many samples the background statistics look at: about 200 000 are plenty."""
+    return max(1, table.n_samples // 200_000)
+
+
 def _all_samples(table: LightFieldTable) -> np.ndarray:
-    keep = table._normalisations.get(b"all")
-    if keep is None or keep.size != table.n_samples:
+    keep = table._scratch.get("all")
+    if keep is None:
         keep = np.ones(table.n_samples, dtype=np.bool_)
-        table._normalisations[b"all"] = keep
+        table._scratch["all"] = keep
     return keep
 
 
@@ -222,18 +226,39 @@ def _coeffs(alphas: np.ndarray) -> np.ndarray:
     return (1.0 / alphas - 1.0).astype(np.float32)
 
 
-def _splat_sites(table: LightFieldTable, ids: np.ndarray, values: np.ndarray, coeffs: np.ndarray,
-                 scale: np.ndarray | None) -> np.ndarray:
-    """Splat samples onto the site grid; return (n_sites, n_alpha) float32, times ``scale``."""
+def _band_starts(table: LightFieldTable, ids: np.ndarray, coeffs: np.ndarray) -> np.ndarray:
+    """Cut samples (ordered by lens row) into bands of site rows that threads may splat in turn.
+
+    A sample moves at most ``reach`` rows, so bands of ``2 * reach + 1`` rows or more, taken
+    every other one, never write the same row (see ``_refocus_kernels.splat``).
+    """
+    n_j, _ = table.site_shape
+    reach = int(np.ceil(table.max_row_shift * float(np.abs(coeffs).max()))) + 1
+    # Enough bands per phase for the threads to share (about 4 each), never thinner than safe.
+    rows = max(2 * reach + 2, n_j // (8 * numba.get_num_threads()))
+    sample_rows = table.lens_site[table.lens[ids], 1] if ids.size else np.zeros(0, np.float32)
+    edges = np.arange(0, n_j + rows, rows, dtype=np.float32)
+    return np.searchsorted(sample_rows, edges, side="left").astype(np.int64)
+
+
+def _splat_sites(table: LightFieldTable, ids: np.ndarray, values: np.ndarray, coeffs: np.ndarray) -> np.ndarray:
+    """Splat samples onto the site grid; return the sums (n_sites, n_alpha) float32.
+
+    The returned array is a work buffer of the table: valid until the next call with the
+    same number of alphas in this thread (callers hand it back with `_release`).
+    """
     n_j, n_i = table.site_shape
-    n_chunks = max(1, min(numba.get_num_threads(), ids.size // 4096 + 1))
-    acc = np.zeros((n_chunks, n_j * n_i, coeffs.size), dtype=np.float32)
+    key = ("acc", coeffs.size)
+    acc = table._scratch.pop(key, None)   # pop: a concurrent caller allocates its own
+    if acc is None:
+        acc = np.empty((n_j * n_i, coeffs.size), dtype=np.float32)
     kern.splat(ids, values, table.lens, table.lens_site, table.u_m, table.v_m,
-               table.inverse_basis_m, coeffs, n_i, n_j, acc)
-    if scale is None:
-        scale = np.ones((n_j * n_i, coeffs.size), dtype=np.float32)
-    kern.reduce_chunks(acc, scale)
-    return acc[0]
+               table.inverse_basis_m, coeffs, n_i, n_j, _band_starts(table, ids, coeffs), acc)
+    return acc
+
+
+def _release(table: LightFieldTable, acc: np.ndarray) -> None:
+    table._scratch[("acc", acc.shape[1])] = acc
 
 
 def normalisation(table: LightFieldTable, alphas: np.ndarray, *, keep: np.ndarray | None = None,
@@ -252,7 +277,7 @@ def normalisation(table: LightFieldTable, alphas: np.ndarray, *, keep: np.ndarra
     if cached is not None:
         return cached
     ids = np.arange(table.n_samples, dtype=np.int32) if keep is None else np.flatnonzero(keep).astype(np.int32)
-    den = _splat_sites(table, ids, table.weight[ids], coeffs, None)
+    den = _splat_sites(table, ids, table.weight[ids], coeffs)
     inv = np.zeros_like(den)
     for a in range(coeffs.size):
         d = den[:, a]
@@ -261,11 +286,12 @@ def normalisation(table: LightFieldTable, alphas: np.ndarray, *, keep: np.ndarra
             continue
         enough = d >= min_coverage * float(np.median(positive))
         inv[enough, a] = 1.0 / d[enough]
+    _release(table, den)
     table._normalisations[key] = inv
     return inv
 
 
-def _to_grid(table: LightFieldTable, site_values: np.ndarray, inv: np.ndarray, grid: ImageGrid,
+def _to_grid(table: LightFieldTable, site_sums: np.ndarray, inv: np.ndarray, grid: ImageGrid,
              out: np.ndarray) -> np.ndarray:
     n_j, n_i = table.site_shape
     i0, j0 = table.site_origin
@@ -274,7 +300,7 @@ def _to_grid(table: LightFieldTable, site_values: np.ndarray, inv: np.ndarray, g
     origin = inv_b @ np.array([grid.x0_m, grid.y0_m]) - np.array([i0, j0], dtype=np.float64)
     d_col = inv_b @ np.array([grid.step_m, 0.0])
     d_row = inv_b @ np.array([0.0, grid.step_m])
-    kern.interpolate_to_grid(site_values, inv > 0, n_i, n_j, origin, d_col, d_row, out)
+    kern.interpolate_to_grid(site_sums, inv, n_i, n_j, origin, d_col, d_row, out)
     return out
 
 
@@ -321,8 +347,10 @@ def refocus_stack(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray 
         samples = select_samples(image, table, black_level=black_level, background=background,
                                  noise_sigmas=noise_sigmas)
     inv = normalisation(table, alphas, min_coverage=min_coverage)
-    sites = _splat_sites(table, samples.ids, samples.values, coeffs, inv)
-    return _to_grid(table, sites, inv, grid, out)
+    sums = _splat_sites(table, samples.ids, samples.values, coeffs)
+    _to_grid(table, sums, inv, grid, out)
+    _release(table, sums)
+    return out
 
 
 def subaperture_image(image: np.ndarray, table: LightFieldTable, *, fraction: float = 0.3,
@@ -350,20 +378,31 @@ def subaperture_image(image: np.ndarray, table: LightFieldTable, *, fraction: fl
     if samples is None:
         samples = select_samples(image, table, black_level=black_level, background=background,
                                  noise_sigmas=noise_sigmas)
-    r_max = fraction * table.aperture_radius_m
-    central = (table.u_m.astype(np.float64) ** 2 + table.v_m.astype(np.float64) ** 2) <= r_max * r_max
+    central = _central_samples(table, fraction)
     alphas = np.ones(1)
     inv = normalisation(table, alphas, keep=central, key_extra=b"sub" + np.float64(fraction).tobytes(),
                         min_coverage=min_coverage)
     chosen = central[samples.ids]
-    sites = _splat_sites(table, samples.ids[chosen], samples.values[chosen], _coeffs(alphas), inv)
+    sums = _splat_sites(table, samples.ids[chosen], samples.values[chosen], _coeffs(alphas))
     out = np.empty((1, grid.height, grid.width), dtype=np.float32)
-    img = _to_grid(table, sites, inv, grid, out)[0]
+    img = _to_grid(table, sums, inv, grid, out)[0]
+    _release(table, sums)
     if blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), sigmaX=blur_sigma_px, sigmaY=blur_sigma_px,
                                borderType=cv2.BORDER_CONSTANT)
     np.maximum(img, 0.0, out=img)
     return img
+
+
+def _central_samples(table: LightFieldTable, fraction: float) -> np.ndarray:
+    """Bool mask of the samples within ``fraction`` of the aperture radius (cached)."""
+    key = ("central", float(fraction))
+    mask = table._scratch.get(key)
+    if mask is None:
+        r_max = fraction * table.aperture_radius_m
+        mask = (table.u_m.astype(np.float64) ** 2 + table.v_m.astype(np.float64) ** 2) <= r_max * r_max
+        table._scratch[key] = mask
+    return mask
 
 
 def products(stack: np.ndarray, subaperture: np.ndarray, *, out: np.ndarray | None = None) -> np.ndarray:
