@@ -157,7 +157,7 @@ def _tilted_layer(rng: np.random.Generator, *, diameter_mm: float = 14.0, count:
 
 def _add_shadowing_partners(x: np.ndarray, y: np.ndarray, z: np.ndarray, rng: np.random.Generator,
                             centre_z_mm: float, *, fraction: float = 0.2,
-                            depth_range_mm: tuple[float, float] = (1.0, 2.5), max_depth_mm: float = 2.2
+                            depth_range_mm: tuple[float, float] = (1.0, 2.5), max_depth_mm: float = 1.9
                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[list[int]]]:
     """Add a partner on (nearly) the line of sight of a fraction of the particles.
 
