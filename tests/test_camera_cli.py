@@ -6,7 +6,6 @@ import csv
 import json
 import os
 import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -56,15 +55,22 @@ def test_calibration(folder, tmp_path, capsys):
 
 
 def test_watch_pulls_the_next_picture(folder, tmp_path, capsys):
-    def shoot():
-        time.sleep(0.2)
-        CameraFolder(folder).add_picture(os.urandom(3000), b'{"n": 3}')
+    done = threading.Event()
+
+    def shoot():  # keep shooting until watch has pulled one, so no start-up race can hide it
+        while not done.wait(0.1):
+            CameraFolder(folder).add_picture(os.urandom(3000), b'{"new": true}')
 
     threading.Thread(target=shoot).start()
     out = tmp_path / "out"
-    assert main(["camera", "watch", "--simulated", str(folder), "--out", str(out), "--poll", "0.05",
-                 "--count", "1"]) == 0
-    assert sorted(f.name for f in out.iterdir()) == ["IMG_0003.RAW", "IMG_0003.TXT"]
+    try:
+        assert main(["camera", "watch", "--simulated", str(folder), "--out", str(out), "--poll", "0.05",
+                     "--count", "1"]) == 0
+    finally:
+        done.set()
+    pulled = sorted(f.name for f in out.iterdir())
+    assert len(pulled) == 2 and pulled[0].endswith(".RAW") and pulled[0] not in ("IMG_0001.RAW", "IMG_0002.RAW")
+    assert (out / pulled[0]).read_bytes() == (folder / pulled[0]).read_bytes()
 
 
 def test_wifi_option(folder, capsys):

@@ -9,7 +9,6 @@ from __future__ import annotations
 import hashlib
 import os
 import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -207,18 +206,20 @@ def test_pull_checks_the_picture_id(camera, folder, tmp_path):
 
 def test_watch_yields_new_pictures_as_they_appear(camera, folder):
     stop = threading.Event()
-    seen = []
+    before = {f.name for f in folder.iterdir()}
 
-    def shoot():
-        time.sleep(0.05)
-        CameraFolder(folder).add_picture(os.urandom(1234), b"{}")
+    def shoot():  # keep shooting until watch reports one, so no start-up race can hide it
+        while not stop.wait(0.05):
+            CameraFolder(folder).add_picture(os.urandom(1234), b"{}")
 
     threading.Thread(target=shoot).start()
-    for pic in camera.watch(poll_s=0.02, stop=stop):
-        seen.append(pic)
+    try:
+        for pic in camera.watch(poll_s=0.02, stop=stop):
+            stop.set()
+    finally:
         stop.set()
-    assert [pic.name for pic in seen] == ["IMG_0003"]
-    assert seen[0].id == "sha1-" + hashlib.sha1((folder / "IMG_0003.RAW").read_bytes()).hexdigest()
+    assert f"{pic.name}.RAW" not in before
+    assert pic.id == "sha1-" + hashlib.sha1((folder / f"{pic.name}.RAW").read_bytes()).hexdigest()
 
 
 def test_take_picture_calls_the_shutter_hook(folder):
