@@ -31,7 +31,7 @@ from .atomic_write import write_atomic
 from .camera_model import CameraModel, Optics
 from .errors import ParameterError
 from .exposure import Exposure, write_lfp, write_raw_pair
-from .scenarios import Particles, Scenario, make_scenario
+from .scenarios import Particles, make_scenario
 from .sim_camera import (DEFAULT_LENS, DEFAULT_SERIAL, ELECTRONS_PER_DN, F01_SIZE, LASER_532_RESPONSE,
                          OTHER_ZOOM_LENS, READ_NOISE_DN, WHITE_RESPONSE, SimulatedLens, chief_ray_cos4,
                          simulated_camera_metadata, simulated_private_metadata, white_normalized_responses)
@@ -447,8 +447,9 @@ def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count:
         say(f"{name}: rendering {len(shown)} of {len(current.particles)} particles on {size}x{size} px")
         image = render_exposure(model, shown, seed=int(frame_rng.integers(2 ** 63)),
                                 background_dn=current.background_dn)
+        minute, second = divmod((k - 1) % 3600, 60)  # one exposure per second from 09:00
         frame_meta = simulated_camera_metadata(lens=DEFAULT_LENS, size=size,
-                                               zulu_time=f"2021-06-01T09:{(k - 1) // 60 % 60:02d}:{(k - 1) % 60:02d}.000Z")
+                                               zulu_time=f"2021-06-01T09:{minute:02d}:{second:02d}.000Z")
         exposure = Exposure(image=image, metadata=frame_meta, private_metadata=private, name=name)
         say(f"{name}: writing .lfp, .RAW + .TXT, truth")
         files.lfp.append(write_lfp(exposure, out / f"{name}.lfp"))
