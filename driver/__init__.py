@@ -6,12 +6,12 @@ returns a :class:`Camera`. The driver moves bytes; decoding them is :mod:`analys
 
 from driver.camera import Camera, CameraSettings, write_atomic
 from driver.connect import open_simulated, open_usb, open_wifi
-from driver.errors import (CameraError, CameraFileNotFound, CameraGone, CameraNotFound, CameraPermissionError,
-                           CameraTimeout, CommandFailed, IntegrityError, ProtocolError)
+from driver.errors import (CameraBusy, CameraError, CameraFileNotFound, CameraGone, CameraNotFound,
+                           CameraPermissionError, CameraTimeout, CommandFailed, IntegrityError, ProtocolError)
 from driver.protocol import HardwareInfo, Picture
 
 __all__ = [
     "Camera", "CameraSettings", "write_atomic", "open_usb", "open_wifi", "open_simulated",
-    "CameraError", "CameraFileNotFound", "CameraGone", "CameraNotFound", "CameraPermissionError",
+    "CameraBusy", "CameraError", "CameraFileNotFound", "CameraGone", "CameraNotFound", "CameraPermissionError",
     "CameraTimeout", "CommandFailed", "IntegrityError", "ProtocolError", "HardwareInfo", "Picture",
 ]

@@ -18,7 +18,7 @@ import usb.core
 import usb.util
 
 from driver import protocol as p
-from driver.errors import (CameraError, CameraGone, CameraPermissionError, CameraTimeout, CommandFailed,
+from driver.errors import (CameraBusy, CameraError, CameraGone, CameraPermissionError, CameraTimeout, CommandFailed,
                            ProtocolError)
 
 log = logging.getLogger(__name__)
@@ -27,6 +27,7 @@ log = logging.getLogger(__name__)
 _LIBUSB_ERROR_IO = -1
 _LIBUSB_ERROR_ACCESS = -3
 _LIBUSB_ERROR_NO_DEVICE = -4
+_LIBUSB_ERROR_BUSY = -6
 _LIBUSB_ERROR_PIPE = -9
 
 
@@ -70,6 +71,9 @@ def translate_usb_error(exc: usb.core.USBError, doing: str) -> CameraError:
     if exc.errno == errno.EACCES or exc.backend_error_code == _LIBUSB_ERROR_ACCESS:
         return CameraPermissionError(f"no permission to use the camera while {doing}; install "
                                      f"deploy/udev/51-lytro.rules and replug it ({exc})")
+    if exc.errno == errno.EBUSY or exc.backend_error_code == _LIBUSB_ERROR_BUSY:
+        return CameraBusy(f"the camera is in use by another program while {doing}; close it "
+                          f"(lyli, Lytro Desktop, another plenodust) and try again ({exc})")
     return ProtocolError(f"USB error while {doing}: {exc}")
 
 
@@ -114,6 +118,8 @@ class BulkOnlyTransport:
                 self.device.set_configuration()
             usb.util.claim_interface(self.device, p.INTERFACE)
         except usb.core.USBError as exc:
+            self._open = True
+            self.close()  # give back the kernel driver taken above
             raise translate_usb_error(exc, "opening the camera") from exc
         self._open = True
 

@@ -152,8 +152,9 @@ class Camera:
 
     def pictures(self) -> list[p.Picture]:
         """The camera's picture list, as :class:`driver.protocol.Picture` records."""
-        data = self._download(lambda: self._run(p.OP_LOAD, p.LOAD_PICTURE_LIST), "picture list")
-        return p.decode_picture_list(data)
+        data = self._download(lambda: self._run(p.OP_LOAD, p.LOAD_PICTURE_LIST), "picture list", allow_empty=True)
+        # A camera without pictures may answer length 0 rather than an empty list.
+        return p.decode_picture_list(data) if data else []
 
     def battery(self) -> float:
         """Battery level in percent."""
@@ -308,7 +309,8 @@ class Camera:
         except CameraError as exc:  # the next attempt will tell
             log.warning("recovery incomplete: %s", exc)
 
-    def _download(self, load: Callable[[], object], what: str, *, progress: Progress | None = None) -> bytearray:
+    def _download(self, load: Callable[[], object], what: str, *, progress: Progress | None = None,
+                  allow_empty: bool = False) -> bytearray:
         """Load content, query its length, then read it chunk by chunk, resuming after failures."""
         chunk = self.settings.chunk_size
         subcode = self.settings.download_subcode
@@ -320,6 +322,8 @@ class Camera:
         with self._lock:
             size = self._retrying(load_and_size, f"loading {what}")
             if size == 0:
+                if allow_empty:
+                    return bytearray()
                 raise CameraFileNotFound(f"the camera has no {what} (it reports length 0); "
                                          "check the path with `plenodust camera list`")
             out = bytearray(size)

@@ -39,5 +39,9 @@ class IntegrityError(CameraError):
     """Downloaded bytes do not match the announced length or the picture's SHA-1."""
 
 
+class CameraBusy(CameraError):
+    """Another program (or a kernel driver that would not let go) holds the camera's interface."""
+
+
 class CameraPermissionError(CameraError, PermissionError):
     """The operating system refused access to the USB device."""

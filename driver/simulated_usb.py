@@ -95,6 +95,7 @@ class SimulatedBackend(usb.backend.IBackend):
         self.faults = FaultPlan()
         self.gone = False
         self.kernel_driver_active = {p.INTERFACE: kernel_driver_active}
+        self.held_by_another_program = False  # claim_interface then fails with "busy"
         self.configuration = 0
         self.claimed: set[int] = set()
         self.halted = {p.EP_IN: False, p.EP_OUT: False}
@@ -199,8 +200,8 @@ class SimulatedBackend(usb.backend.IBackend):
 
     def claim_interface(self, dev_handle, intf):
         self._check_present()
-        if self.kernel_driver_active.get(intf):
-            raise usb.core.USBError("Resource busy (a kernel driver holds the interface)", -6, errno.EBUSY)
+        if self.kernel_driver_active.get(intf) or self.held_by_another_program:
+            raise usb.core.USBError("Resource busy", -6, errno.EBUSY)
         self.claimed.add(intf)
 
     def release_interface(self, dev_handle, intf):

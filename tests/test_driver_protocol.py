@@ -186,7 +186,8 @@ def test_wifi_read_header_magic_length_flags_command():
 
 
 def test_wifi_write_header_and_response_decode():
-    assert p.encode_wifi_header(p.cdb_load_file(), length=30, flags=0) == h("af55aafa 1e000000 00000000 c20001") + bytes(13)
+    expected = h("af55aafa 1e000000 00000000 c20001") + bytes(13)
+    assert p.encode_wifi_header(p.cdb_load_file(), length=30, flags=0) == expected
     response = p.decode_wifi_header(h("af55aafa 1e000000 02000000 c20001") + bytes(13))
     assert (response.length, response.flags, response.command[:3]) == (30, 2, h("c20001"))
     with pytest.raises(ProtocolError, match="magic"):

@@ -147,7 +147,8 @@ def test_load_file_sends_the_path_with_nul_as_an_out_phase(camera, backend, fold
     wire = list(backend.wire)
     i = next(k for k, t in enumerate(wire) if t.data[:4] == b"USBC" and t.data[15:18] == bytes.fromhex("c20001"))
     path = b"I:\\DCIM\\100PHOTO\\IMG_0001.TXT\x00"
-    assert wire[i].data == bytes.fromhex("55534243") + wire[i].data[4:8] + bytes.fromhex("1e000000 00 00 10 c20001") + bytes(13)
+    tag = wire[i].data[4:8]
+    assert wire[i].data == bytes.fromhex("55534243") + tag + bytes.fromhex("1e000000 00 00 10 c20001") + bytes(13)
     assert wire[i + 1].endpoint == 0x02 and wire[i + 1].data == path
     csw = p.decode_csw(wire[i + 2].data)
     assert wire[i + 2].endpoint == 0x82 and csw.tag == int.from_bytes(wire[i].data[4:8], "little") and csw.status == 0
@@ -162,7 +163,8 @@ def test_multi_chunk_download_is_byte_for_byte(camera, backend, folder):
     # The second download command as sent, against section 2.1/2.2 byte by byte.
     sent = [t.data for t in backend.wire if t.data[:4] == b"USBC" and t.data[15] == 0xC4]
     tag = sent[1][4:8]
-    assert sent[1] == bytes.fromhex("55534243") + tag + bytes.fromhex("00400000 80 00 10 c4 00 01 00 40 00 00") + bytes(9)
+    expected = bytes.fromhex("55534243") + tag + bytes.fromhex("00400000 80 00 10 c4 00 01 00 40 00 00") + bytes(9)
+    assert sent[1] == expected
     assert sent[-1][8:12] == rest.to_bytes(4, "little")
 
 
@@ -342,3 +344,16 @@ def test_reset_while_pulling_a_picture_still_gives_exact_files(camera, backend, 
     written = camera.pull(pic, tmp_path / "out")
     for f in written:
         assert f.read_bytes() == (folder / f.name).read_bytes()
+
+
+def test_empty_camera_lists_no_pictures(tmp_path):
+    with driver.open_simulated(tmp_path) as cam:
+        assert cam.pictures() == []
+        assert cam.pull_calibration(tmp_path / "cal") == []
+
+
+def test_failed_claim_gives_the_kernel_driver_back(backend):
+    backend.held_by_another_program = True
+    with pytest.raises(driver.CameraBusy, match="another program"):
+        driver.open_usb(backend)
+    assert backend.kernel_driver_active[0] is True
