@@ -16,7 +16,7 @@ from analysis.scenarios import SCENARIO_NAMES, Particles, make_scenario
 from analysis.sim_camera import (DEFAULT_LENS, ELECTRONS_PER_DN, LASER_532_RESPONSE, READ_NOISE_DN,
                                  WHITE_RESPONSE, simulated_camera_metadata)
 from analysis.simulate import (accumulate_particles, channel_response_map, in_view, particle_truth, read_out,
-                               render_exposure, render_white_image, write_scenario)
+                               render_exposure, render_white_image, white_coverage, write_scenario)
 from analysis.whites import load_white_images
 from service.cli.main import main as cli_main
 
@@ -67,6 +67,23 @@ def test_white_noisy_green_centroids_and_level():
     cy = np.floor(centres[:, 1]).astype(int)
     cx += (cx + cy) % 2 == 0  # step onto a green site
     assert np.median(raw[cy, cx] - model.black_level) == pytest.approx(2400.0, rel=0.02)
+
+
+def test_white_image_falls_off_as_cos4_toward_the_corner():
+    full = CameraModel.from_metadata(simulated_camera_metadata())
+    start = full.width - 128  # a 128 px window in the bottom-right corner of the full sensor
+    corner = replace(full, width=128, height=128,
+                     lattice=full.lattice.with_changes(origin_x=full.lattice.origin_x - start,
+                                                       origin_y=full.lattice.origin_y - start))
+    cov = white_coverage(corner)
+    ij, centres = corner.lattice.centres(128, 128, margin_px=8.0)
+    s, t = corner.lens_plane_position_m(ij[:, 0], ij[:, 1])
+    p_m = corner.optics.exit_pupil_m
+    cos4 = (p_m ** 2 / (p_m ** 2 + s ** 2 + t ** 2)) ** 2
+    assert cos4.max() < 0.97  # the fall-off is there to see
+    # The centre pixel of each micro-image is fully lit: its value is the chief ray's cos^4.
+    centre_values = cov[centres[:, 1].astype(int), centres[:, 0].astype(int)]
+    assert np.allclose(centre_values, cos4, rtol=2e-3)
 
 
 def test_white_image_deterministic_per_seed():
