@@ -65,7 +65,10 @@ class CameraFolder:
                                     "or fill it with `plenodust simulate --out DIR`")
         self.folder_number = folder_number
         self.folder_name = folder_name
-        self._cache: dict[Path, tuple[tuple[int, int], bytes]] = {}
+        # Picture ids by file and (mtime, size): each .RAW is hashed once, not at every list.
+        self._ids: dict[Path, tuple[tuple[int, int], str]] = {}
+        # The last file read, so that loading it again (a resumed download) costs no disk read.
+        self._last: tuple[Path, tuple[int, int], bytes] | None = None
         self._lock = threading.Lock()
 
     def read(self, camera_path: str) -> bytes | None:
@@ -73,7 +76,17 @@ class CameraFolder:
         local = self.resolve(camera_path)
         if local is None:
             return None
-        return self._read_local(local)
+        try:
+            st = local.stat()
+            key = (st.st_mtime_ns, st.st_size)
+            last = self._last
+            if last is not None and last[0] == local and last[1] == key:
+                return last[2]
+            data = local.read_bytes()
+        except FileNotFoundError:  # removed since resolved
+            return None
+        self._last = (local, key, data)
+        return data
 
     def resolve(self, camera_path: str) -> Path | None:
         """The local file that backs ``camera_path``, or None."""
@@ -97,14 +110,14 @@ class CameraFolder:
             if not m or not local.is_file():
                 continue
             try:
-                raw = self._read_local(local)
-                mtime = local.stat().st_mtime
+                st = local.stat()
+                picture_id = self._picture_id(local, st)
             except FileNotFoundError:  # removed while listing
                 continue
             result.append(p.Picture(
                 folder_name=self.folder_name, file_prefix=m["prefix"].upper(), folder_number=self.folder_number,
-                file_number=int(m["number"]), id=p.picture_id(raw),
-                taken=datetime.fromtimestamp(mtime, tz=timezone.utc)))
+                file_number=int(m["number"]), id=picture_id,
+                taken=datetime.fromtimestamp(st.st_mtime, tz=timezone.utc)))
         result.sort(key=lambda pic: pic.file_number)
         return result
 
@@ -137,19 +150,16 @@ class CameraFolder:
                     return candidate
         return None
 
-    def _read_local(self, local: Path) -> bytes:
-        st = local.stat()
+    def _picture_id(self, local: Path, st: os.stat_result) -> str:
         key = (st.st_mtime_ns, st.st_size)
         with self._lock:
-            hit = self._cache.get(local)
-            if hit and hit[0] == key:
-                return hit[1]
-        data = local.read_bytes()
+            hit = self._ids.get(local)
+        if hit and hit[0] == key:
+            return hit[1]
+        picture_id = p.picture_id(local.read_bytes())
         with self._lock:
-            if len(self._cache) > 16:
-                self._cache.clear()
-            self._cache[local] = (key, data)
-        return data
+            self._ids[local] = (key, picture_id)
+        return picture_id
 
 
 @dataclass
