@@ -338,7 +338,7 @@ class SimulatedBackend(usb.backend.IBackend):
         ok, reply = self.camera.handle(cbw.cdb, data_out=data_out,
                                        data_in_length=cbw.data_length if cbw.direction_in else 0)
         self._ok, self._reply = ok, reply
-        self._residue = cbw.data_length if not cbw.direction_in and data_out is None else 0
+        self._residue = 0  # an OUT phase was taken whole; an IN phase sets it when sent
 
     def _send_data(self, buff) -> int:
         hits = self._hits
