@@ -43,7 +43,7 @@ from .image_grid import ImageGrid
 from .lightfield import LightFieldTable
 
 __all__ = ["ImageGrid", "Samples", "default_alphas", "alphas_for_depth_range", "select_samples",
-           "refocus_stack", "subaperture_image", "products", "normalisation"]
+           "refocus_stack", "subaperture_image", "products", "normalisation", "prepare_normalisations"]
 
 DEFAULT_MIN_COVERAGE = 0.25
 # Below this many DN the noise estimate is taken as quantisation-limited.
@@ -289,6 +289,20 @@ def normalisation(table: LightFieldTable, alphas: np.ndarray, *, keep: np.ndarra
     _release(table, den)
     table._normalisations[key] = inv
     return inv
+
+
+def prepare_normalisations(table: LightFieldTable, alphas: np.ndarray | None = None, *,
+                           fraction: float = 0.3, min_coverage: float = DEFAULT_MIN_COVERAGE) -> None:
+    """Compute the normalisations of the stack (``alphas``) and the sub-aperture image (``fraction``).
+
+    About a second full size, once per table and settings; call it before
+    :func:`analysis.lightfield.save_table` so the cached table carries them and a fresh process
+    refocuses at full speed from its first exposure.
+    """
+    normalisation(table, default_alphas() if alphas is None else alphas, min_coverage=min_coverage)
+    central = _central_samples(table, fraction)
+    normalisation(table, np.ones(1), keep=central, key_extra=b"sub" + np.float64(fraction).tobytes(),
+                  min_coverage=min_coverage)
 
 
 def _to_grid(table: LightFieldTable, site_sums: np.ndarray, inv: np.ndarray, grid: ImageGrid,

@@ -9,9 +9,9 @@ import pytest
 from analysis._refocus_reference import refocus_reference
 from analysis.camera_model import CameraModel
 from analysis.errors import ParameterError
-from analysis.lightfield import build_table_from_model
-from analysis.refocus import (alphas_for_depth_range, default_alphas, normalisation, products,
-                              refocus_stack, select_samples, subaperture_image)
+from analysis.lightfield import build_table_from_model, load_table, save_table
+from analysis.refocus import (alphas_for_depth_range, default_alphas, normalisation, prepare_normalisations,
+                              products, refocus_stack, select_samples, subaperture_image)
 from analysis.sim_camera import simulated_camera_metadata
 from analysis.simulate import render_white_image
 
@@ -230,3 +230,15 @@ def test_diffuse_glow_is_estimated_and_removed(model):
     sparse = refocus_stack(glow, table, default_alphas(3))[:, 6:-6, 6:-6]
     assert sparse.min() >= 0 and sparse.max() < 0.05 * samples.background
     assert np.count_nonzero(sparse) < 0.3 * sparse.size
+
+
+def test_prepared_normalisations_travel_with_the_saved_table(tmp_path, model):
+    table = build_table_from_model(model)
+    alphas = default_alphas(6)
+    prepare_normalisations(table, alphas, fraction=0.25)
+    back = load_table(save_table(table, tmp_path / "lot.npz"))
+    assert len(back._normalisations) == 2
+    image = point_source_exposure(model, 1.004, (0.0, 0.0))
+    assert np.array_equal(refocus_stack(image, back, alphas), refocus_stack(image, table, alphas))
+    assert np.array_equal(subaperture_image(image, back, fraction=0.25), subaperture_image(image, table, fraction=0.25))
+    assert len(back._normalisations) == 2   # nothing recomputed
