@@ -75,7 +75,8 @@ def create_app(settings: Settings | None = None, *, camera: Any = None, store: S
             opener = (lambda: camera) if camera is not None else (lambda: open_camera(settings.camera))
             state.watcher = CameraWatcher(opener, the_store, queue, bus, metrics,
                                           current_run=lambda: state.current_run, on_queued=runner.wake,
-                                          poll_s=settings.camera_poll_s)
+                                          poll_s=settings.camera_poll_s,
+                                          pull_existing=settings.camera_pull_existing)
         app.state.service = state
         # Jobs whose process died with the last server go back to the queue now.
         for job in await asyncio.to_thread(queue.requeue_expired):

@@ -50,6 +50,8 @@ class Settings(BaseSettings):
     heartbeat_s: float = Field(5.0, gt=0)
     max_attempts: int = Field(3, ge=1)
     camera_poll_s: float = Field(2.0, gt=0)
+    # On first contact with a camera, also queue the pictures already on it.
+    camera_pull_existing: bool = False
     run: str = "default"
     # Refocused slices kept per exposure for the dashboard's slice viewer.
     keep_slices: bool = True

@@ -42,7 +42,8 @@ def run(args: argparse.Namespace) -> int:
     if not (camera_dir / "calibration").is_dir():
         shots.prepare()
     settings = Settings(host=args.host, port=args.port, data_dir=data / "service", camera=f"simulated:{camera_dir}",
-                        workers=args.workers, run="demo", camera_poll_s=1.0)
+                        workers=args.workers, run="demo", camera_poll_s=1.0,
+                        camera_pull_existing=True)
     shots.start(args.every)
     try:
         return serve(settings)

@@ -115,12 +115,10 @@ const Plot = (() => {
       }
     }
     // Axis labels at the box's lowest corner.
-    ctx.fillStyle = "#8a98a6"; ctx.font = "11px system-ui, sans-serif";
-    const o = project(rx[0], ry[0], rz[0]);
+    ctx.fillStyle = "#8a98a6"; ctx.font = "11px system-ui, sans-serif"; ctx.textAlign = "left";
     [["X", project(rx[1], ry[0], rz[0])], ["Y", project(rx[0], ry[1], rz[0])], ["Z", project(rx[0], ry[0], rz[1])]]
       .forEach(([name, p]) => { ctx.fillText(name, p[0] + 4, p[1]); });
     ctx.fillText(`box ${(rx[1] - rx[0]).toFixed(2)} × ${(ry[1] - ry[0]).toFixed(2)} × ${(rz[1] - rz[0]).toFixed(2)} mm`, 8, H - 8);
-    void o;
     // Painter's order: far points first.
     const pts = [];
     xs.forEach((x, i) => {
