@@ -63,24 +63,31 @@ def blur(image: np.ndarray) -> np.ndarray:
                             borderType=cv2.BORDER_REFLECT_101)
 
 
-def read_out(expected_dn: np.ndarray, *, black: float, white: float, rng: np.random.Generator | None) -> np.ndarray:
+def read_out(expected_dn: np.ndarray, *, black: float, white: float, rng: np.random.Generator | None,
+             rows_per_block: int = 256) -> np.ndarray:
     """Sensor readout of an expected signal (DN above black): shot and read noise, black level,
     12-bit clip and rounding. ``rng=None`` gives the noiseless rounded image.
+
+    Works in blocks of rows, so the float64 temporaries stay small on a full frame.
 
     Returns
     -------
     ndarray of shape (H, W), uint16, values in ``0 ... white``.
     """
-    if rng is None:
-        values = expected_dn.astype(np.float64) + black
-    else:
-        electrons = rng.poisson(np.maximum(expected_dn, 0.0).astype(np.float64) * ELECTRONS_PER_DN)
-        values = electrons / ELECTRONS_PER_DN
-        values += rng.standard_normal(expected_dn.shape) * READ_NOISE_DN
-        values += black
-    np.rint(values, out=values)
-    np.clip(values, 0, white, out=values)
-    return values.astype(np.uint16)
+    out = np.empty(expected_dn.shape, dtype=np.uint16)
+    for r0 in range(0, expected_dn.shape[0], rows_per_block):
+        block = expected_dn[r0:r0 + rows_per_block]
+        if rng is None:
+            values = block.astype(np.float64) + black
+        else:
+            electrons = rng.poisson(np.maximum(block, 0.0).astype(np.float64) * ELECTRONS_PER_DN)
+            values = electrons / ELECTRONS_PER_DN
+            values += rng.standard_normal(block.shape) * READ_NOISE_DN
+            values += black
+        np.rint(values, out=values)
+        np.clip(values, 0, white, out=values)
+        out[r0:r0 + rows_per_block] = values
+    return out
 
 
 def lens_vignetting(model: CameraModel, i: np.ndarray, j: np.ndarray) -> np.ndarray:
