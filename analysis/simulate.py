@@ -526,3 +526,9 @@ def _write_calibration(folder: Path, *, seed: int, size: int, private: dict,
         doc.append({"name": name, "zoom_step": spec.lens.zoom_step, "focus_step": spec.lens.focus_step,
                     "exposure_s": spec.exposure_s, "level_dn": spec.level_dn, "dark": spec.level_dn < 500})
     return {"paths": paths, "doc": doc}
+
+
+__all__ = ["BLUR_SIGMA_PX", "ParticleTruth", "Particles", "SimulationFiles", "TRUTH_COLUMNS", "accumulate_particles",
+           "channel_response_map", "in_view", "make_scenario", "mean_nn_distance_mm", "particle_truth", "read_out",
+           "render_exposure", "render_white_image", "simulated_camera_metadata", "truth_csv_bytes",
+           "white_coverage", "write_scenario"]
