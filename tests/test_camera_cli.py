@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import threading
 from pathlib import Path
@@ -101,3 +102,11 @@ def test_pull_from_a_simulated_camera_then_process_gives_particles(tmp_path, cap
         rows = list(csv.DictReader(f))
     assert len(rows) > 0
     assert {"X", "Y", "Z"} <= set(rows[0])
+    # The pulled exposure is the simulated one: every true particle is found where it is
+    # (laterally; depth accuracy is the pipeline's own tests' business).
+    with (sim / "IMG_0001.truth.csv").open() as f:
+        truth = list(csv.DictReader(f))
+    for particle in truth:
+        nearest = min(math.hypot(float(r["X"]) - float(particle["X"]), float(r["Y"]) - float(particle["Y"]))
+                      for r in rows)
+        assert nearest < 0.1, f"particle {particle['particle']} not found (nearest {nearest:.3f} mm)"
