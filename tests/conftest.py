@@ -19,3 +19,19 @@ def real_fixtures() -> Path:
     if not FIXTURES_REAL.is_dir():
         pytest.fail(f"real fixtures not found at {FIXTURES_REAL}; CI clones shared/ beside the repository")
     return FIXTURES_REAL
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--camera", action="store_true", default=False,
+                     help="also run the tests that need a real Lytro F01 on USB (tests/test_driver_with_device.py)")
+
+
+@pytest.fixture()
+def real_camera(request: pytest.FixtureRequest):
+    """An open real F01 on USB; the test is skipped unless pytest runs with ``--camera``."""
+    if not request.config.getoption("--camera"):
+        pytest.skip("needs a real Lytro F01 on USB: run pytest with --camera")
+    import driver
+
+    with driver.open_usb() as camera:
+        yield camera
