@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import array
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -109,8 +110,24 @@ def main() -> None:
             data = cam.read_file(CAMERA_PATH)
             _, peak = tracemalloc.get_traced_memory()
             tracemalloc.stop()
-        print(f"peak memory of one read (64 K chunks): {peak / 1e6:.1f} MB "
-              f"({peak / len(data):.2f} x the file)")
+            print(f"peak memory of read_file (64 K chunks): {peak / 1e6:.1f} MB "
+                  f"({peak / len(data):.2f} x the file)")
+            picture = cam.pictures()[0]
+            dest = folder / "pulled"
+            tracemalloc.start()
+            cam.pull(picture, dest)
+            _, peak = tracemalloc.get_traced_memory()
+            tracemalloc.stop()
+            print(f"peak memory of pull (.RAW + .TXT to disk): {peak / 1e6:.1f} MB ({peak / len(data):.2f} x the raw)")
+
+            def plain_copy() -> None:
+                shutil.copyfile(folder / "IMG_0001.RAW", dest / "copy.RAW")
+                with open(dest / "copy.RAW", "rb+") as f:
+                    os.fsync(f.fileno())
+
+            t_copy, t_pull = interleaved(plain_copy, lambda: cam.pull(picture, dest), repeat=5)
+            print(f"pull to disk (fsync, rename) {t_pull * 1e3:.1f} ms vs copying the file + fsync "
+                  f"{t_copy * 1e3:.1f} ms: {(t_pull / t_copy - 1) * 100:+.1f}%")
 
 
 if __name__ == "__main__":
