@@ -12,7 +12,8 @@ What is timed (best of N, after a warm-up):
 
 The driver's overhead is printed relative to the chunked copy (the target: under 10 % over
 the raw copy of the bytes), and per command (CBW, data, CSW), for several chunk sizes; lyli
-uses 64 KiB, the driver's default. Peak memory of one read is measured with
+uses 64 KiB, the driver's default. A last section splits the cost of one command between
+the simulated device, pyusb's own bookkeeping and this driver's code. Peak memory of one read is measured with
 tracemalloc.
 
 Run: .venv/bin/python bench/bench_usb.py
@@ -33,6 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import driver  # noqa: E402
+from driver import protocol as p  # noqa: E402
 from driver.simulated_usb import SimulatedBackend  # noqa: E402
 
 RAW_BYTES = 16_137_600  # 3280 x 3280 pixels, 12 bit packed
@@ -94,12 +96,14 @@ def main() -> None:
               "a transfer's result is fresh memory, whose page faults dominate the copies below)")
         print(f"{'chunk':>8} {'chunked copy':>14} {'driver':>10} {'MB/s':>7} {'vs chunked':>11} "
               f"{'per command':>12}")
+        copy_at: dict[int, float] = {}
         for chunk in CHUNKS:
             with driver.open_usb(SimulatedBackend(folder), chunk_size=chunk) as cam:
                 assert cam.read_file(CAMERA_PATH) == raw
                 transfer = array.array("B", bytes(chunk))
                 t_copy, t_driver = interleaved(lambda: chunked_copy(raw, chunk, transfer),
                                                lambda: cam.read_file(CAMERA_PATH))
+            copy_at[chunk] = t_copy
             commands = -(-RAW_BYTES // chunk)
             print(f"{chunk // 1024:>6} K {t_copy * 1e3:11.2f} ms {t_driver * 1e3:7.2f} ms {mb / t_driver:7.0f} "
                   f"{(t_driver / t_copy - 1) * 100:+10.1f}% {(t_driver - t_copy) / commands * 1e6:9.1f} us")
@@ -128,6 +132,55 @@ def main() -> None:
             t_copy, t_pull = interleaved(plain_copy, lambda: cam.pull(picture, dest), repeat=5)
             print(f"pull to disk (fsync, rename) {t_pull * 1e3:.1f} ms vs copying the file + fsync "
                   f"{t_copy * 1e3:.1f} ms: {(t_pull / t_copy - 1) * 100:+.1f}%")
+
+        t_dev, t_usb, t_drv = per_command_costs(folder)
+        commands = -(-RAW_BYTES // (64 * 1024))
+        t_copy = copy_at[64 * 1024]  # measured beside the driver, under the same allocations
+        print(f"per command: simulated device {t_dev * 1e6:.1f} us, + pyusb {(t_usb - t_dev) * 1e6:.1f} us, "
+              f"+ driver {(t_drv - t_usb) * 1e6:.1f} us")
+        print(f"the driver's own share for a 16 MB raw at 64 K chunks ({commands} commands): "
+              f"{(t_drv - t_usb) * commands * 1e3:.2f} ms = {(t_drv - t_usb) * commands / t_copy * 100:+.1f}% "
+              "over the chunked copy of the table")
+
+
+def per_command_costs(folder: Path, n: int = 3000) -> tuple[float, float, float]:
+    """Seconds per command (a 4-byte battery query: CBW, data, CSW) at three depths.
+
+    Returns (simulated device alone, pyusb + device, driver + pyusb + device).
+    """
+    backend = SimulatedBackend(folder)
+    with driver.open_usb(backend) as cam:
+        dev, transport = cam.transport.device, cam.transport
+        handle = dev._ctx.handle
+        cdb = p.cdb_query_battery()
+        data, csw = array.array("B", bytes(4)), array.array("B", bytes(13))
+        # The same CBW bytes at every depth (pyusb converts to an array itself).
+        cbws = [p.encode_cbw(cdb, tag=i, data_length=4, direction_in=True) for i in range(n)]
+        cbw_arrays = [array.array("B", c) for c in cbws]
+
+        def device_only() -> None:
+            for cbw in cbw_arrays:
+                backend.bulk_write(handle, p.EP_OUT, 0, cbw, 5000)
+                backend.bulk_read(handle, p.EP_IN, 0, data, 5000)
+                backend.bulk_read(handle, p.EP_IN, 0, csw, 5000)
+
+        def through_pyusb() -> None:
+            for cbw in cbws:
+                dev.write(p.EP_OUT, cbw, 5000)
+                dev.read(p.EP_IN, data, 5000)
+                dev.read(p.EP_IN, csw, 5000)
+
+        def through_driver() -> None:
+            for _ in range(n):
+                transport.execute(cdb, data_in_length=4)
+
+        times: list[list[float]] = [[], [], []]
+        for _ in range(7):  # interleaved, best of 7
+            for k, fn in enumerate((device_only, through_pyusb, through_driver)):
+                t0 = time.perf_counter()
+                fn()
+                times[k].append((time.perf_counter() - t0) / n)
+        return min(times[0]), min(times[1]), min(times[2])
 
 
 if __name__ == "__main__":
