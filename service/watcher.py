@@ -145,9 +145,11 @@ class CameraWatcher:
                 serials = set()
             serial = serials.pop() if len(serials) == 1 else self.serial
             target = self.store.calibration_dir(serial)
-            if target.exists():
-                shutil.rmtree(target)
-            os.replace(incoming, target)
+            target.mkdir(parents=True, exist_ok=True)
+            # File by file, so a job reading white images already there never sees a gap.
+            for path in incoming.iterdir():
+                os.replace(path, target / path.name)
+            incoming.rmdir()
             self.store.index_calibration(serial, source="camera")
             self.calibration_serial = serial
             self.bus.publish("calibration", {"serial": serial, "camera": self.serial, "files": len(pulled)})
