@@ -303,22 +303,29 @@ def merge_duplicates(peaks: Peaks, *, radius_px: float = 1.5, alpha_tolerance: f
 
     A track broken by a longer gap, or a blob split in one slice, can report one particle twice.
     """
+    return peaks.take(unique_indices(peaks, radius_px=radius_px, alpha_tolerance=alpha_tolerance))
+
+
+def unique_indices(peaks: Peaks, *, radius_px: float, alpha_tolerance: float,
+                   priority: np.ndarray | None = None) -> np.ndarray:
+    """Indices of the peaks to keep when near-duplicates are merged, in their original order.
+
+    Of peaks within ``radius_px`` (image) and ``alpha_tolerance`` (alpha) of each other, the one
+    with the highest ``priority`` (default ``peak_height``) is kept.
+    """
     n = len(peaks)
     if n < 2:
-        return peaks
-    scale = radius_px / alpha_tolerance
-    pts = np.column_stack([peaks.x, peaks.y, peaks.alpha * scale])
-    order = np.argsort(-peaks.peak_height)
-    tree = cKDTree(pts)
+        return np.arange(n)
+    priority = peaks.peak_height if priority is None else np.asarray(priority)
+    tree = cKDTree(np.column_stack([peaks.x, peaks.y]))
     removed = np.zeros(n, dtype=bool)
-    for i in order:
+    for i in np.argsort(-priority, kind="stable"):
         if removed[i]:
             continue
-        for j in tree.query_ball_point(pts[i], r=radius_px * np.sqrt(2)):
-            if j != i and not removed[j] and abs(peaks.x[j] - peaks.x[i]) ** 2 + abs(peaks.y[j] - peaks.y[i]) ** 2 <= radius_px**2 \
-                    and abs(peaks.alpha[j] - peaks.alpha[i]) <= alpha_tolerance:
+        for j in tree.query_ball_point([peaks.x[i], peaks.y[i]], r=radius_px):
+            if j != i and not removed[j] and abs(peaks.alpha[j] - peaks.alpha[i]) <= alpha_tolerance:
                 removed[j] = True
-    return peaks.take(np.flatnonzero(~removed))
+    return np.flatnonzero(~removed)
 
 
 def _empty_peaks() -> Peaks:

@@ -43,12 +43,13 @@ import numpy as np
 from .calibration import Calibration
 from .camera_model import CameraModel
 from .coordinates import Calibration3D, ThinLensCalibration, UserCalibration, to_physical
-from .depth import Peaks, Tracks, find_depth_peaks, link_tracks, merge_duplicates
+from .depth import Peaks, Tracks, find_depth_peaks, link_tracks, merge_duplicates, unique_indices
 from .errors import CameraMismatchError, MetadataError, ParameterError
 from .exposure import Exposure
 from .image_grid import ImageGrid
 from .lightfield import TABLE_FORMAT_VERSION, LightFieldTable, build_table, load_table, save_table
 from .moments import detect, estimate_noise
+from .ray_depth import RayFit, fit_rays
 from .refocus import alphas_for_depth_range, default_alphas, products, refocus_stack, select_samples, \
     subaperture_image
 
@@ -56,7 +57,7 @@ log = logging.getLogger(__name__)
 
 #: Columns of the particle table, in this order.
 COLUMNS: tuple[str, ...] = ("particle", "x", "y", "alpha", "X", "Y", "Z", "brightness",
-                            "peak_height", "peak_width", "residual", "prominence")
+                            "peak_height", "peak_width", "residual", "prominence", "alpha_std", "intensity")
 _UNITS = {"x": "pixel", "y": "pixel", "X": "mm", "Y": "mm", "Z": "mm", "alpha": "1", "peak_width": "1"}
 
 # Above this fraction of saturated green pixels an exposure holds no usable particle image.
@@ -81,14 +82,20 @@ class PipelineParams:
     noise_sigmas
         Raw samples within this many noise sigmas of the background are skipped in the refocus.
     threshold
-        Absolute detection threshold on the product images; None: ``threshold_sigma`` times
-        the noise of the product stack above its background.
+        Absolute detection threshold on the product images; None: ``(threshold_sigma *
+        raw noise)**2`` (:func:`product_threshold`).
     threshold_sigma, min_pixels
         Detection (:func:`analysis.moments.detect`).
     link_radius_px, max_gap
         Linking across slices (:func:`analysis.depth.link_tracks`), output pixels.
     min_prominence, fit_half_width
         Peaks of the brightness curves (:func:`analysis.depth.find_depth_peaks`).
+    refine, refine_alpha_range
+        Refine each peak's position and depth by fitting the forward model to the raw pixels
+        around it (:func:`analysis.ray_depth.fit_rays`), searching ``alpha +- refine_alpha_range``.
+    min_intensity_sigma
+        Refined particles whose fitted pixel intensity is below this many raw-noise sigmas are
+        dropped as noise.
     pixel_size_mm, depth_per_alpha_mm, reference_alpha, reference_z_mm
         A user calibration of the physical coordinates (:class:`UserCalibration`); when
         ``pixel_size_mm`` and ``depth_per_alpha_mm`` are None the thin-lens model of the
@@ -110,6 +117,9 @@ class PipelineParams:
     max_gap: int = 1
     min_prominence: float = 0.2
     fit_half_width: int = 4
+    refine: bool = True
+    refine_alpha_range: float = 0.002
+    min_intensity_sigma: float = 8.0
     pixel_size_mm: float | None = None
     depth_per_alpha_mm: float | None = None
     reference_alpha: float = 1.0
@@ -130,6 +140,8 @@ class PipelineParams:
             if len(self.depth_range_mm) != 2 or not (0 < self.depth_range_mm[0] < self.depth_range_mm[1]):
                 raise ParameterError(f"depth_range_mm must be [near, far] with 0 < near < far, "
                                      f"got {self.depth_range_mm}")
+        if not (0 < self.refine_alpha_range < 0.1):
+            raise ParameterError(f"refine_alpha_range must be in (0, 0.1), got {self.refine_alpha_range}")
         if not (0 < self.aperture_fraction <= 1):
             raise ParameterError(f"aperture_fraction must be in (0, 1], got {self.aperture_fraction}")
         if self.blur_sigma_px < 0 or self.grid_oversample <= 0:
@@ -181,9 +193,13 @@ class Result:
         The particle table by column (:data:`COLUMNS`): ``particle`` (0..n-1), ``x, y``
         (output-image pixels, integer values at pixel centres), ``alpha``, ``X, Y, Z`` (mm,
         camera frame; NaN without a usable depth model), ``brightness`` (mean intensity per
-        pixel in the slice nearest ``alpha``), ``peak_height`` / ``peak_width`` / ``residual``
-        (the fitted brightness peak; width in alpha), ``prominence`` (fraction of the curve's
-        maximum; below 1 for the lesser particles of a shadowing group).
+        pixel in the slice nearest ``alpha``), ``peak_height`` / ``peak_width`` (the fitted
+        brightness maximum; width in alpha), ``residual`` (RMS misfit of the forward-model fit per
+        pixel as a fraction of ``intensity``; without refinement, of the brightness-curve fit in
+        ``log B``), ``prominence`` (fraction of the curve's maximum; below 1 for the lesser
+        particles of a shadowing group), ``alpha_std`` (spread of alpha over the candidates the
+        raw pixels allow: large where one lens holds all the light) and ``intensity`` (fitted DN
+        of a lit pixel).
     params : PipelineParams
     alphas : ndarray of shape (n_slices,)
     grid : ImageGrid
@@ -331,11 +347,18 @@ def saturated_fraction(image: np.ndarray, white_level: float) -> tuple[float, in
 
 # --- the pipeline -------------------------------------------------------------------------------
 
-def product_threshold(product: np.ndarray, params: PipelineParams) -> float:
-    """Detection threshold for a product stack: ``params.threshold``, or the noise estimate."""
+def product_threshold(noise_dn: float, params: PipelineParams) -> float:
+    """Detection threshold for the product images: ``params.threshold``, or
+    ``(threshold_sigma * noise_dn)**2``.
+
+    A product pixel is a refocused value times a sub-aperture value, both in DN per unit white
+    weight; it passes when both factors stand ``threshold_sigma`` raw-noise sigmas above the
+    background. (The product's own pixel statistics are no guide: most pixels are exactly zero
+    once the refocus skips samples in the noise, and the rest are mostly particle light.)
+    """
     if params.threshold is not None:
         return float(params.threshold)
-    return estimate_noise(product).threshold(params.threshold_sigma)
+    return (params.threshold_sigma * max(noise_dn, 0.5)) ** 2
 
 
 def locate(product: np.ndarray, alphas: np.ndarray, params: PipelineParams, *, threshold: float,
@@ -414,9 +437,9 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     report(0.05)
 
     def finish(peaks: Peaks, tracks: Tracks | None, stack: np.ndarray | None, sub: np.ndarray | None,
-               threshold: float) -> Result:
+               threshold: float, fit: RayFit | None = None) -> Result:
         t = time.perf_counter()
-        particles, curves = _particle_table(peaks, tracks, alphas, grid, coordinates, warnings)
+        particles, curves = _particle_table(peaks, tracks, alphas, grid, coordinates, warnings, fit)
         timings["coordinates"] = time.perf_counter() - t
         if cache_dir is not None and len(table._normalisations) != n_norms:
             _save_table_quietly(table, table_cache_path(cache_dir, calibration, params.grid_oversample))
@@ -450,11 +473,20 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     timings["subaperture"] = time.perf_counter() - t
     t = time.perf_counter()
     product = products(stack, sub, out=None if keep_stack else stack)
-    threshold = product_threshold(product, params)
+    threshold = product_threshold(samples.sigma, params)
     timings["products"] = time.perf_counter() - t
     report(0.6)
 
     peaks, tracks = locate(product, alphas, params, threshold=threshold, timings=timings)
+    report(0.8)
+    fit = None
+    if params.refine and len(peaks):
+        t = time.perf_counter()
+        peaks, fit = refine_peaks(exposure.image, table, grid, peaks, background=samples.background,
+                                  alpha_half_range=params.refine_alpha_range,
+                                  min_intensity=params.min_intensity_sigma * max(samples.sigma, 0.5),
+                                  merge_radius_px=params.link_radius_px, step=float(alphas[1] - alphas[0]))
+        timings["refine"] = time.perf_counter() - t
     report(0.9)
     if len(peaks) == 0:
         if len(tracks):
@@ -462,15 +494,44 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                             f"{alphas[0]:.4f} ... {alphas[-1]:.4f}; widen the range")
         else:
             warnings.append("no particles found above the noise; check the exposure and the threshold")
-    return finish(peaks, tracks, stack, sub, threshold)
+    return finish(peaks, tracks, stack, sub, threshold, fit)
+
+
+def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, peaks: Peaks, *, background: float,
+                 alpha_half_range: float, min_intensity: float, merge_radius_px: float, step: float
+                 ) -> tuple[Peaks, RayFit]:
+    """Replace each peak's position and depth by the forward-model fit to the raw pixels.
+
+    Peaks whose fitted intensity is below ``min_intensity`` are dropped; peaks that converge onto one particle are merged
+    (the brighter kept). Returns the refined peaks and the matching rows of the fit.
+    """
+    sx0, sy0 = grid.to_lens_plane(peaks.x, peaks.y)
+    fit = fit_rays(image, table, sx0, sy0, peaks.alpha, background=background, alpha_half_range=alpha_half_range)
+    x, y = grid.to_pixels(fit.sx_m, fit.sy_m)
+    refined = dataclasses.replace(peaks, x=np.asarray(x, float), y=np.asarray(y, float), alpha=fit.alpha,
+                                  residual=fit.residual)
+    keep = np.flatnonzero(fit.intensity > max(min_intensity, 0.0))
+    refined, fit = refined.take(keep), _take_fit(fit, keep)
+    kept = unique_indices(refined, radius_px=merge_radius_px, alpha_tolerance=step, priority=fit.intensity)
+    return refined.take(kept), _take_fit(fit, kept)
+
+
+def _take_fit(fit: RayFit, index: np.ndarray) -> RayFit:
+    return RayFit(**{name: getattr(fit, name)[index] for name in fit.__dataclass_fields__})
 
 
 def _particle_table(peaks: Peaks, tracks: Tracks | None, alphas: np.ndarray, grid: ImageGrid,
-                    coordinates: Calibration3D, warnings: list[str]) -> tuple[dict[str, np.ndarray], np.ndarray]:
+                    coordinates: Calibration3D, warnings: list[str], fit: RayFit | None = None
+                    ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     n = len(peaks)
     # Order particles by image position (row, then column) so tables compare between runs.
     order = np.lexsort((peaks.x, peaks.y)) if n else np.empty(0, dtype=np.int64)
     peaks = peaks.take(order)
+    if fit is not None:
+        fit = _take_fit(fit, order)
+        alpha_std, intensity = fit.alpha_spread, fit.intensity
+    else:
+        alpha_std, intensity = np.full(n, np.nan), np.full(n, np.nan)
     try:
         X, Y, Z = to_physical(peaks.x, peaks.y, peaks.alpha, grid, coordinates)
     except MetadataError as exc:
@@ -487,7 +548,8 @@ def _particle_table(peaks: Peaks, tracks: Tracks | None, alphas: np.ndarray, gri
     particles = {"particle": np.arange(n, dtype=np.int64), "x": peaks.x, "y": peaks.y, "alpha": peaks.alpha,
                  "X": np.asarray(X, float), "Y": np.asarray(Y, float), "Z": np.asarray(Z, float),
                  "brightness": np.asarray(brightness, float), "peak_height": peaks.peak_height,
-                 "peak_width": peaks.peak_width, "residual": peaks.residual, "prominence": peaks.prominence}
+                 "peak_width": peaks.peak_width, "residual": peaks.residual, "prominence": peaks.prominence,
+                 "alpha_std": np.asarray(alpha_std, float), "intensity": np.asarray(intensity, float)}
     return particles, curves
 
 
