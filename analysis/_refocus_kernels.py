@@ -1,8 +1,10 @@
 """numba kernels of the refocus: arrays and scalars in, caller-allocated arrays out.
 
 No validation here; :mod:`analysis.refocus` checks shapes and dtypes and chooses the settings.
-Lattice coordinates are "site" coordinates: column ``i - i0`` and row ``j - j0`` on the dense
-lens-site grid of a :class:`analysis.lightfield.LightFieldTable`.
+Lattice coordinates are relative: ``(ii, jj) = (i - i0, j - j0)``. Lens ``(ii, jj)`` is stored at
+row ``jj``, column ``ii + jj // 2 + col_offset`` of the dense site grid (n_rows, n_cols) of a
+:class:`analysis.lightfield.LightFieldTable`; so from site ``(ii, jj)``, ``(ii + 1, jj)`` is the
+next column and ``(ii, jj + 1)`` is ``n_cols + (jj & 1)`` further on.
 
 Triangles: the hexagonal lattice cell ``(i0, j0) ... (i0+1, j0+1)`` splits along the diagonal
 ``(i0+1, j0) - (i0, j0+1)`` into two equilateral triangles; barycentric weights in lattice
@@ -97,12 +99,13 @@ def select_samples(image_flat, pixel_index, weight, keep, black, beta, threshold
 
 
 @njit(parallel=True, fastmath=FASTMATH, cache=True)
-def splat(ids, values, lens, lens_site, u, v, inv_basis, coeffs, n_i, n_j, band_start, acc):  # pragma: no cover
+def splat(ids, values, lens, lens_site, u, v, inv_basis, coeffs, n_cols, n_rows, col_offset, band_start,
+          acc):  # pragma: no cover
     """Shift-and-add samples onto the 3 lens sites of their triangle, for every alpha at once.
 
     Sample ``ids[k]`` with value ``values[k]`` moves from its lens site by
     ``inv_basis @ (u, v) * coeffs[a]`` lattice steps (``coeffs = 1/alpha - 1``) and is split
-    barycentrically into ``acc`` (n_j * n_i, n_alpha), which this kernel zeroes first.
+    barycentrically into ``acc`` (n_rows * n_cols, n_alpha), which this kernel zeroes first.
 
     Threads never write the same site: samples come ordered by lens row and are cut into bands
     of ``H`` site rows (``band_start[b]`` is the first sample of band ``b``), where the caller
@@ -111,8 +114,8 @@ def splat(ids, values, lens, lens_site, u, v, inv_basis, coeffs, n_i, n_j, band_
     grid are dropped (the normalisation drops the same ones).
     """
     n_sites, n_alpha = acc.shape
-    for row in prange(n_j):
-        for s in range(row * n_i, (row + 1) * n_i):
+    for row in prange(n_rows):
+        for s in range(row * n_cols, (row + 1) * n_cols):
             for a in range(n_alpha):
                 acc[s, a] = 0.0
     b00 = np.float32(inv_basis[0, 0])
@@ -136,27 +139,30 @@ def splat(ids, values, lens, lens_site, u, v, inv_basis, coeffs, n_i, n_j, band_
                     fj = base_j + dv * coeffs[a]
                     i0 = int(math.floor(fi))
                     j0 = int(math.floor(fj))
-                    if i0 < 0 or j0 < 0 or i0 + 1 >= n_i or j0 + 1 >= n_j:
+                    col = i0 + (j0 >> 1) + col_offset
+                    up = n_cols + (j0 & 1)             # from (i0, j0) to (i0, j0 + 1)
+                    if j0 < 0 or j0 + 1 >= n_rows or col < 0 or col + 1 + (j0 & 1) >= n_cols:
                         continue
                     wa = fi - i0
                     wb = fj - j0
-                    site = j0 * n_i + i0
+                    site = j0 * n_cols + col
                     if wa + wb < 1.0:
                         acc[site, a] += val * (1.0 - wa - wb)
                         acc[site + 1, a] += val * wa
-                        acc[site + n_i, a] += val * wb
+                        acc[site + up, a] += val * wb
                     else:
-                        acc[site + n_i + 1, a] += val * (wa + wb - 1.0)
+                        acc[site + up + 1, a] += val * (wa + wb - 1.0)
                         acc[site + 1, a] += val * (1.0 - wb)
-                        acc[site + n_i, a] += val * (1.0 - wa)
+                        acc[site + up, a] += val * (1.0 - wa)
 
 
 @njit(parallel=True, fastmath=FASTMATH, cache=True)
-def interpolate_to_grid(site_sums, site_scale, n_i, n_j, origin, d_col, d_row, out):  # pragma: no cover
+def interpolate_to_grid(site_sums, site_scale, n_cols, n_rows, col_offset, origin, d_col, d_row,
+                        out):  # pragma: no cover
     """Barycentric interpolation of ``site_sums * site_scale`` from the lens-site grid onto a
     regular image grid.
 
-    Output pixel ``(col, row)`` sits at site coordinates ``origin + col * d_col + row * d_row``.
+    Output pixel ``(col, row)`` sits at relative lattice coordinates ``origin + col * d_col + row * d_row``.
     ``site_sums`` and ``site_scale`` have shape (n_sites, n_alpha); a site with
     ``site_scale == 0`` received too little light to be trusted and is left out: each pixel is
     the weighted mean of the valid corners of its triangle (0 where none is valid).
@@ -169,18 +175,20 @@ def interpolate_to_grid(site_sums, site_scale, n_i, n_j, origin, d_col, d_row, o
             fj = origin[1] + col * d_col[1] + row * d_row[1]
             i0 = int(math.floor(fi))
             j0 = int(math.floor(fj))
-            if i0 < 0 or j0 < 0 or i0 + 1 >= n_i or j0 + 1 >= n_j:
+            c0 = i0 + (j0 >> 1) + col_offset
+            if j0 < 0 or j0 + 1 >= n_rows or c0 < 0 or c0 + 1 + (j0 & 1) >= n_cols:
                 for a in range(n_alpha):
                     out[a, row, col] = 0.0
                 continue
             wa = fi - i0
             wb = fj - j0
-            s0 = j0 * n_i + i0
+            s0 = j0 * n_cols + c0
+            up = n_cols + (j0 & 1)
             if wa + wb < 1.0:
-                sa, sb, sc = s0, s0 + 1, s0 + n_i
+                sa, sb, sc = s0, s0 + 1, s0 + up
                 wx, wy, wz = 1.0 - wa - wb, wa, wb
             else:
-                sa, sb, sc = s0 + n_i + 1, s0 + 1, s0 + n_i
+                sa, sb, sc = s0 + up + 1, s0 + 1, s0 + up
                 wx, wy, wz = wa + wb - 1.0, 1.0 - wb, 1.0 - wa
             for a in range(n_alpha):
                 num = 0.0

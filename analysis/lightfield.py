@@ -28,7 +28,7 @@ from .errors import CalibrationError, ParameterError
 from .image_grid import ImageGrid
 
 # Bump when the saved layout changes, so stale caches are rebuilt, not misread.
-TABLE_FORMAT_VERSION = 1
+TABLE_FORMAT_VERSION = 2
 
 # Empty lens sites kept around the lattice so that shifted samples near the edge still land
 # on the site grid (the simulated f/2 camera shifts by up to about 4 lenses over 0.987 ... 1.013).
@@ -103,22 +103,36 @@ class LightFieldTable:
         return int(self.lens_ij.shape[0])
 
     # --- the lens-site grid the refocus kernels splat onto -------------------------------------
+    # Lens (i, j) is site row ``jj = j - j0`` and column ``ii + jj // 2 + col_offset`` with
+    # ``ii = i - i0``: each hexagonal row is shifted back by half a lens per row, so the grid is
+    # a rectangle about as wide as a lens row instead of a parallelogram (a third less memory).
 
     @cached_property
     def site_origin(self) -> tuple[int, int]:
-        """Lattice index ``(i, j)`` of site ``(0, 0)`` of the dense site grid (includes padding)."""
+        """Lattice index ``(i0, j0)`` of relative site coordinates ``(0, 0)`` (``j0`` includes padding)."""
         return (int(self.lens_ij[:, 0].min()) - _SITE_PAD, int(self.lens_ij[:, 1].min()) - _SITE_PAD)
 
     @cached_property
-    def site_shape(self) -> tuple[int, int]:
-        """``(n_j, n_i)``: rows and columns of the dense lens-site grid."""
+    def _site_columns(self) -> tuple[int, int]:
         i0, j0 = self.site_origin
-        return (int(self.lens_ij[:, 1].max()) - j0 + 1 + _SITE_PAD,
-                int(self.lens_ij[:, 0].max()) - i0 + 1 + _SITE_PAD)
+        cols = (self.lens_ij[:, 0] - i0) + (self.lens_ij[:, 1] - j0) // 2
+        offset = _SITE_PAD - int(cols.min())
+        return offset, int(cols.max()) + offset + 2 + _SITE_PAD
+
+    @property
+    def site_col_offset(self) -> int:
+        """Added to ``ii + jj // 2`` to give a site's column (see the comment above)."""
+        return self._site_columns[0]
+
+    @cached_property
+    def site_shape(self) -> tuple[int, int]:
+        """``(n_rows, n_cols)`` of the dense lens-site grid (padded)."""
+        _, j0 = self.site_origin
+        return (int(self.lens_ij[:, 1].max()) - j0 + 1 + _SITE_PAD, self._site_columns[1])
 
     @cached_property
     def lens_site(self) -> np.ndarray:
-        """ndarray (L, 2) float32: each lens's ``(column, row)`` on the dense site grid."""
+        """ndarray (L, 2) float32: each lens's relative lattice index ``(ii, jj)`` (``jj`` = site row)."""
         i0, j0 = self.site_origin
         return np.stack([self.lens_ij[:, 0] - i0, self.lens_ij[:, 1] - j0], axis=1).astype(np.float32)
 

@@ -247,13 +247,13 @@ def _splat_sites(table: LightFieldTable, ids: np.ndarray, values: np.ndarray, co
     The returned array is a work buffer of the table: valid until the next call with the
     same number of alphas in this thread (callers hand it back with `_release`).
     """
-    n_j, n_i = table.site_shape
+    n_rows, n_cols = table.site_shape
     key = ("acc", coeffs.size)
     acc = table._scratch.pop(key, None)   # pop: a concurrent caller allocates its own
     if acc is None:
-        acc = np.empty((n_j * n_i, coeffs.size), dtype=np.float32)
-    kern.splat(ids, values, table.lens, table.lens_site, table.u_m, table.v_m,
-               table.inverse_basis_m, coeffs, n_i, n_j, _band_starts(table, ids, coeffs), acc)
+        acc = np.empty((n_rows * n_cols, coeffs.size), dtype=np.float32)
+    kern.splat(ids, values, table.lens, table.lens_site, table.u_m, table.v_m, table.inverse_basis_m,
+               coeffs, n_cols, n_rows, table.site_col_offset, _band_starts(table, ids, coeffs), acc)
     return acc
 
 
@@ -307,14 +307,14 @@ def prepare_normalisations(table: LightFieldTable, alphas: np.ndarray | None = N
 
 def _to_grid(table: LightFieldTable, site_sums: np.ndarray, inv: np.ndarray, grid: ImageGrid,
              out: np.ndarray) -> np.ndarray:
-    n_j, n_i = table.site_shape
+    n_rows, n_cols = table.site_shape
     i0, j0 = table.site_origin
     inv_b = table.inverse_basis_m
-    # Site coordinates of output pixel (0, 0) and per column / row step.
+    # Relative lattice coordinates of output pixel (0, 0) and per column / row step.
     origin = inv_b @ np.array([grid.x0_m, grid.y0_m]) - np.array([i0, j0], dtype=np.float64)
     d_col = inv_b @ np.array([grid.step_m, 0.0])
     d_row = inv_b @ np.array([0.0, grid.step_m])
-    kern.interpolate_to_grid(site_sums, inv, n_i, n_j, origin, d_col, d_row, out)
+    kern.interpolate_to_grid(site_sums, inv, n_cols, n_rows, table.site_col_offset, origin, d_col, d_row, out)
     return out
 
 

@@ -149,39 +149,43 @@ def naive_dense(raw: np.ndarray, table, alphas: np.ndarray) -> float:
     from analysis import refocus as rf
 
     @njit(cache=False)
-    def one_slice(flat, pix, lens, site, u, v, w, inv_b, coeff, black, n_i, n_j, num, den):
+    def one_slice(flat, pix, lens, site, u, v, w, inv_b, coeff, black, n_cols, n_rows, col_offset, num, den):
         for k in range(pix.size):
             fi = site[lens[k], 0] + (inv_b[0, 0] * u[k] + inv_b[0, 1] * v[k]) * coeff
             fj = site[lens[k], 1] + (inv_b[1, 0] * u[k] + inv_b[1, 1] * v[k]) * coeff
             i0 = int(np.floor(fi))
             j0 = int(np.floor(fj))
-            if i0 < 0 or j0 < 0 or i0 + 1 >= n_i or j0 + 1 >= n_j:
+            col = i0 + (j0 >> 1) + col_offset
+            if j0 < 0 or j0 + 1 >= n_rows or col < 0 or col + 2 >= n_cols:
                 continue
             a = fi - i0
             b = fj - j0
             val = flat[pix[k]] - black
-            s = j0 * n_i + i0
+            s = j0 * n_cols + col
+            up = n_cols + (j0 & 1)
             if a + b < 1:
-                corners = ((s, 1 - a - b), (s + 1, a), (s + n_i, b))
+                corners = ((s, 1 - a - b), (s + 1, a), (s + up, b))
             else:
-                corners = ((s + n_i + 1, a + b - 1), (s + 1, 1 - b), (s + n_i, 1 - a))
+                corners = ((s + up + 1, a + b - 1), (s + 1, 1 - b), (s + up, 1 - a))
             for c, wt in corners:
                 num[c] += wt * val
                 den[c] += wt * w[k]
 
-    n_j, n_i = table.site_shape
+    n_rows, n_cols = table.site_shape
+    n_sites = n_rows * n_cols
     flat = raw.reshape(-1)
     grid = table.grid
     out = np.empty((1, grid.height, grid.width), np.float32)
     args = (flat, table.pixel_index, table.lens, table.lens_site, table.u_m, table.v_m, table.weight,
             table.inverse_basis_m)
-    one_slice(*args, 0.0, float(table.black_level), n_i, n_j,
-              np.zeros(n_i * n_j, np.float32), np.zeros(n_i * n_j, np.float32))  # compile
+    shape = (n_cols, n_rows, table.site_col_offset)
+    one_slice(*args, 0.0, float(table.black_level), *shape,
+              np.zeros(n_sites, np.float32), np.zeros(n_sites, np.float32))  # compile
     t0 = time.perf_counter()
     for alpha in alphas:
-        num = np.zeros(n_i * n_j, np.float32)
-        den = np.zeros(n_i * n_j, np.float32)
-        one_slice(*args, 1.0 / alpha - 1.0, float(table.black_level), n_i, n_j, num, den)
+        num = np.zeros(n_sites, np.float32)
+        den = np.zeros(n_sites, np.float32)
+        one_slice(*args, 1.0 / alpha - 1.0, float(table.black_level), *shape, num, den)
         inv = np.where(den > 0, 1.0 / np.maximum(den, 1e-30), 0).astype(np.float32)
         rf._to_grid(table, (num * inv)[:, None], inv[:, None], grid, out)
     return time.perf_counter() - t0
