@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
+
 import numpy as np
 import pytest
 
@@ -134,3 +137,25 @@ def test_image_grid_round_trip():
     assert (fine.width, fine.height) == (100, 80)
     # Same outer edge: left edge of pixel 0 stays put.
     assert fine.x0_m - fine.step_m / 2 == pytest.approx(g.x0_m - g.step_m / 2)
+
+
+def test_real_f01_metadata_builds_a_telecentric_table(real_fixtures):
+    """Firmware 1.0.2 writes exitPupilOffset.z = 10000: micro-images fill the pitch, weights are 1."""
+    meta = json.loads((real_fixtures / "f01-frame-metadata.json").read_text())
+    full = CameraModel.from_metadata(meta)
+    # A 240 x 240 crop around the sensor centre (even offset keeps the Bayer phase).
+    lat = full.lattice.with_changes(origin_x=full.lattice.origin_x - 1520, origin_y=full.lattice.origin_y - 1520)
+    model = dataclasses.replace(full, width=240, height=240, lattice=lat)
+    table = build_table_from_model(model, rim_px=1.0)
+    assert model.optics.telecentric
+    assert np.all(table.weight == 1.0)
+    assert table.aperture_radius_m == pytest.approx(model.optics.aperture_diameter_m / 2)
+    # Aperture sign: pixels right of / below their micro-image centre see the left / top of the aperture.
+    row, col = np.divmod(table.pixel_index, model.width)
+    cx, cy = model.lattice.centre(table.lens_ij[table.lens, 0], table.lens_ij[table.lens, 1])
+    dx, dy = col + 0.5 - cx, row + 0.5 - cy
+    assert np.all(np.sign(table.u_m[np.abs(dx) > 0.1]) == -np.sign(dx[np.abs(dx) > 0.1]))
+    assert np.all(np.sign(table.v_m[np.abs(dy) > 0.1]) == -np.sign(dy[np.abs(dy) > 0.1]))
+    # About 9 x 9 useful pixels per lens, half of them green (lytro-f01.md 1.7).
+    per_lens = table.n_samples / table.n_lenses
+    assert 15 < per_lens < 40
