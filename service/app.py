@@ -18,6 +18,7 @@ from fastapi import FastAPI
 from fastapi.responses import FileResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
+from analysis.pipeline import PipelineParams
 from service.database import Database
 from service.deps import ServiceState
 from service.events import EventBus
@@ -53,6 +54,8 @@ def create_app(settings: Settings | None = None, *, camera: Any = None, store: S
         Where jobs run, instead of the one ``settings.executor`` names.
     """
     settings = settings or get_settings()
+    # Refuse bad pipeline parameters now rather than fail every job later.
+    PipelineParams.from_dict(settings.pipeline).validate()
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -68,7 +71,7 @@ def create_app(settings: Settings | None = None, *, camera: Any = None, store: S
                                                  warm_up=settings.warm_up)
         runner = JobRunner(queue, the_store, the_executor, bus, metrics,
                            RunnerConfig(slots=settings.workers, heartbeat_s=settings.heartbeat_s,
-                                        keep_slices=settings.keep_slices))
+                                        keep_slices=settings.keep_slices, parameters=settings.pipeline))
         state = ServiceState(settings=settings, db=db, store=the_store, queue=queue, bus=bus, metrics=metrics,
                              executor=the_executor, runner=runner, started_at=time.time())
         if camera is not None or settings.camera != "none":

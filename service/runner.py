@@ -30,6 +30,7 @@ class RunnerConfig:
     heartbeat_s: float = 5.0
     idle_poll_s: float = 0.5
     keep_slices: bool = True
+    parameters: dict | None = None
 
 
 class JobRunner:
@@ -148,6 +149,7 @@ class JobRunner:
                        raw_paths=tuple(str(p) for p in self.store.raw_paths(record.id, record.kind)),
                        calibration_dir=str(calibration) if calibration else None,
                        calibration_cache_dir=str(self.store.cache_dir),
+                       parameters=self.config.parameters or None,
                        keep_slices=self.config.keep_slices)
 
     async def _heartbeat(self, job: Job, owner: str, progress: dict) -> None:

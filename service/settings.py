@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from functools import lru_cache
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -53,6 +53,9 @@ class Settings(BaseSettings):
     # On first contact with a camera, also queue the pictures already on it.
     camera_pull_existing: bool = False
     run: str = "default"
+    # Pipeline parameters (fields of analysis.pipeline.PipelineParams), e.g.
+    # PLENODUST_PIPELINE='{"n_slices": 60, "alpha_min": 0.99}'; empty for the defaults.
+    pipeline: dict[str, Any] = Field(default_factory=dict)
     # Refocused slices kept per exposure for the dashboard's slice viewer.
     keep_slices: bool = True
     warm_up: bool = True

@@ -65,5 +65,14 @@ def run(args: argparse.Namespace) -> int:
         for error in exc.errors():
             print(f"plenodust serve: {'.'.join(map(str, error['loc']))}: {error['msg']}")
         return 2
+    from analysis.errors import ParameterError
+
+    try:
+        from analysis.pipeline import PipelineParams
+
+        PipelineParams.from_dict(settings.pipeline).validate()
+    except ParameterError as exc:
+        print(f"plenodust serve: PLENODUST_PIPELINE: {exc}")
+        return 2
     return serve(settings, announce=f"plenodust: dashboard at http://{settings.host}:{settings.port}/ "
                                      f"(API docs at /docs), data in {settings.data_dir}")

@@ -1,0 +1,198 @@
+"""End to end over real HTTP: ``plenodust serve`` in a subprocess on loopback.
+
+Upload -> job done -> particles vs the simulator's truth, announced on the event stream;
+SIGKILL mid-job and restart -> every exposure done exactly once; 50 concurrent uploads
+against a small queue -> none lost, 503 + Retry-After honoured; the API key and the body
+limit over a real socket.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import h5py
+import httpx
+import numpy as np
+import pytest
+
+from service_helpers import assert_matches_truth, assert_problem, simulate, truth_xyz, variant_lfp, wait_for_job
+from service_server import ServiceProcess
+
+KEY = "e2e-key"
+AUTH = {"Authorization": f"Bearer {KEY}"}
+OCTET = {**AUTH, "Content-Type": "application/octet-stream"}
+CAPACITY = 5
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    return simulate(tmp_path_factory.mktemp("sim"), seed=2, count=2)
+
+
+def _calibrate(url: str, sim) -> None:
+    files = [("files", (p.name, p.read_bytes())) for p in sorted(sim.calibration_dir.iterdir())]
+    r = httpx.post(url + "/api/v1/calibrations", files=files, headers=AUTH, timeout=60)
+    assert r.status_code == 201, r.text
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory, sim):
+    service = ServiceProcess(tmp_path_factory.mktemp("data"), env={
+        "PLENODUST_API_KEY": KEY, "PLENODUST_QUEUE_CAPACITY": str(CAPACITY), "PLENODUST_RETRY_AFTER_S": "1",
+        "PLENODUST_MAX_BODY_BYTES": "4000000"})
+    try:
+        service.wait_ready()
+        _calibrate(service.url, sim)
+        yield service
+    finally:
+        service.stop()
+
+
+class EventStream:
+    """Reads ``/api/v1/events`` in a thread and keeps what arrives."""
+
+    def __init__(self, url: str) -> None:
+        self.events: list[tuple[str, dict]] = []
+        self.connected = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(url,), daemon=True)
+        self._thread.start()
+        assert self.connected.wait(10), "event stream did not open"
+
+    def _run(self, url: str) -> None:
+        with httpx.stream("GET", url + "/api/v1/events", timeout=httpx.Timeout(5, read=None)) as r:
+            assert r.headers["content-type"].startswith("text/event-stream")
+            kind = None
+            for line in r.iter_lines():
+                if line.startswith("event:"):
+                    kind = line.split(":", 1)[1].strip()
+                elif line.startswith("data:") and kind:
+                    self.events.append((kind, json.loads(line.split(":", 1)[1])))
+                    if kind == "hello":
+                        self.connected.set()
+                if self._stop.is_set():
+                    return
+
+    def wait_for(self, predicate, timeout_s: float = 60.0) -> tuple[str, dict]:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            for event in list(self.events):
+                if predicate(*event):
+                    return event
+            time.sleep(0.05)
+        raise TimeoutError(f"no such event among {self.events}")
+
+    def close(self) -> None:
+        self._stop.set()
+
+
+def test_upload_over_http_is_processed_matches_truth_and_is_announced(server, sim) -> None:
+    stream = EventStream(server.url)
+    try:
+        r = httpx.post(server.url + "/api/v1/exposures?run=e2e", content=sim.lfp[0].read_bytes(), headers=OCTET)
+        assert r.status_code == 202, r.text
+        body = r.json()
+        assert r.headers["location"] == f"/api/v1/jobs/{body['job_id']}"
+        job = wait_for_job(lambda path: httpx.get(server.url + path), body["job_id"])
+        assert job["state"] == "done"
+        stream.wait_for(lambda kind, data: kind == "result" and data["exposure_id"] == body["exposure_id"])
+        states = [d["state"] for k, d in stream.events if k == "job" and d.get("id") == body["job_id"]]
+        assert states[0] == "queued" and states[-1] == "done" and "running" in states
+    finally:
+        stream.close()
+    table = httpx.get(server.url + f"/api/v1/exposures/{body['exposure_id']}/particles").json()
+    assert_matches_truth(table["columns"], truth_xyz(sim.truth[0]))
+
+
+def test_the_api_key_and_body_limit_hold_over_a_real_socket(server, sim) -> None:
+    data = sim.lfp[1].read_bytes()
+    r = httpx.post(server.url + "/api/v1/exposures", content=data, headers={"Content-Type": "application/octet-stream"})
+    assert_problem(r, 401)
+    r = httpx.post(server.url + "/api/v1/exposures", content=b"\0" * 4_000_001, headers=OCTET)
+    assert_problem(r, 413)
+    # A streamed body without Content-Length is cut off at the limit too.
+    r = httpx.post(server.url + "/api/v1/exposures", content=iter([b"\0" * 1_000_000] * 5), headers=OCTET)
+    assert_problem(r, 413)
+    assert_problem(httpx.post(server.url + "/api/v1/exposures", content=b"junk" * 10, headers=OCTET), 422)
+
+
+def test_50_concurrent_uploads_none_lost_and_back_pressure_honoured(server, sim) -> None:
+    uploads = [variant_lfp(sim.lfp[1], 100 + k) for k in range(50)]
+    refusals: list[str] = []
+
+    def upload(data: bytes) -> dict:
+        with httpx.Client(base_url=server.url, timeout=60) as client:
+            while True:
+                r = client.post("/api/v1/exposures?run=load", content=data, headers=OCTET)
+                if r.status_code != 503:
+                    assert r.status_code == 202, r.text
+                    return r.json()
+                assert_problem(r, 503)
+                refusals.append(r.headers["retry-after"])
+                time.sleep(float(r.headers["retry-after"]))  # what a well-behaved client does
+
+    with ThreadPoolExecutor(50) as pool:
+        accepted = list(pool.map(upload, uploads))
+    assert refusals, "a queue of 5 should have refused some of 50 uploads at once"
+    assert all(value == "1" for value in refusals)
+    assert len({a["exposure_id"] for a in accepted}) == 50
+    for a in accepted:
+        assert wait_for_job(lambda path: httpx.get(server.url + path), a["job_id"], timeout_s=180)["state"] == "done"
+    exposures = httpx.get(server.url + "/api/v1/runs/load/exposures").json()["items"]
+    assert len(exposures) == 50 and all(e["state"] == "done" for e in exposures)
+    assert sorted(e["frame"] for e in exposures) == list(range(50))
+    metrics = httpx.get(server.url + "/metrics").text
+    assert f'plenodust_uploads_total{{result="rejected"}} {len(refusals)}' in metrics
+
+
+def test_sigkill_mid_job_and_restart_finishes_every_exposure_exactly_once(tmp_path: Path, sim) -> None:
+    # Many slices make each job last about a second, so the kill lands inside one.
+    env = {"PLENODUST_API_KEY": KEY, "PLENODUST_PIPELINE": json.dumps({"n_slices": 1000}),
+           "PLENODUST_LEASE_S": "5", "PLENODUST_HEARTBEAT_S": "1"}
+    data_dir = tmp_path / "data"
+    first = ServiceProcess(data_dir, env=env)
+    try:
+        first.wait_ready()
+        _calibrate(first.url, sim)
+        accepted = []
+        for k in range(4):
+            r = httpx.post(first.url + "/api/v1/exposures?run=crash", content=variant_lfp(sim.lfp[0], 500 + k),
+                           headers=OCTET, timeout=60)
+            assert r.status_code == 202
+            accepted.append(r.json())
+        deadline = time.monotonic() + 60
+        while not (running := httpx.get(first.url + "/api/v1/jobs?state=running").json()["items"]):
+            assert time.monotonic() < deadline, "no job ever ran"
+            time.sleep(0.05)
+        interrupted = running[0]["id"]
+        first.kill()
+    finally:
+        first.stop()
+
+    second = ServiceProcess(data_dir, env=env)
+    try:
+        second.wait_ready()
+        for a in accepted:
+            job = wait_for_job(lambda path: httpx.get(second.url + path), a["job_id"], timeout_s=120)
+            assert job["state"] == "done", job
+        jobs = httpx.get(second.url + "/api/v1/jobs?limit=500").json()
+        assert jobs["total"] == 4  # no second job for any exposure
+        attempts = {j["id"]: j["attempts"] for j in jobs["items"]}
+        assert attempts[interrupted] == 2  # it was running when killed, and ran again
+        counts = {a["exposure_id"]: httpx.get(second.url + f"/api/v1/exposures/{a['exposure_id']}/particles")
+                  .json()["count"] for a in accepted}
+        run_file = httpx.get(second.url + "/api/v1/runs/crash/particles?format=h5")
+    finally:
+        second.stop()
+    path = tmp_path / "crash.nxs"
+    path.write_bytes(run_file.content)
+    with h5py.File(path, "r") as f:
+        frames = f["entry/data/frame"][()]
+        ids = [i.decode() for i in f["entry/exposures/id"][()]]
+    # Each exposure's rows are in the run file once.
+    assert sorted(ids) == sorted(counts)
+    assert [int(np.sum(frames == a["frame"])) for a in accepted] == [counts[a["exposure_id"]] for a in accepted]
