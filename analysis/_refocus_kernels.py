@@ -122,6 +122,7 @@ def splat(ids, values, lens, lens_site, u, v, inv_basis, coeffs, n_cols, n_rows,
     b01 = np.float32(inv_basis[0, 1])
     b10 = np.float32(inv_basis[1, 0])
     b11 = np.float32(inv_basis[1, 1])
+    one = np.float32(1.0)
     n_bands = band_start.size - 1
     for parity in range(2):
         for q in prange((n_bands - parity + 1) // 2):
@@ -135,25 +136,30 @@ def splat(ids, values, lens, lens_site, u, v, inv_basis, coeffs, n_cols, n_rows,
                 du = b00 * u[s] + b01 * v[s]
                 dv = b10 * u[s] + b11 * v[s]
                 for a in range(n_alpha):
+                    # float32 throughout: the weights need no more, and it keeps the loop lean.
                     fi = base_i + du * coeffs[a]
                     fj = base_j + dv * coeffs[a]
-                    i0 = int(math.floor(fi))
-                    j0 = int(math.floor(fj))
+                    fi0 = np.floor(fi)
+                    fj0 = np.floor(fj)
+                    i0 = int(fi0)
+                    j0 = int(fj0)
                     col = i0 + (j0 >> 1) + col_offset
                     up = n_cols + (j0 & 1)             # from (i0, j0) to (i0, j0 + 1)
                     if j0 < 0 or j0 + 1 >= n_rows or col < 0 or col + 1 + (j0 & 1) >= n_cols:
                         continue
-                    wa = fi - i0
-                    wb = fj - j0
+                    wa = fi - fi0
+                    wb = fj - fj0
+                    va = val * wa
+                    vb = val * wb
                     site = j0 * n_cols + col
-                    if wa + wb < 1.0:
-                        acc[site, a] += val * (1.0 - wa - wb)
-                        acc[site + 1, a] += val * wa
-                        acc[site + up, a] += val * wb
+                    if wa + wb < one:
+                        acc[site, a] += val - va - vb
+                        acc[site + 1, a] += va
+                        acc[site + up, a] += vb
                     else:
-                        acc[site + up + 1, a] += val * (wa + wb - 1.0)
-                        acc[site + 1, a] += val * (1.0 - wb)
-                        acc[site + up, a] += val * (1.0 - wa)
+                        acc[site + up + 1, a] += va + vb - val
+                        acc[site + 1, a] += val - vb
+                        acc[site + up, a] += val - va
 
 
 @njit(parallel=True, fastmath=FASTMATH, cache=True)
