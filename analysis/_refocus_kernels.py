@@ -62,9 +62,9 @@ def value_histogram(values, weights, beta, divide, lo, inv_width, hist):  # prag
 
 
 @njit(parallel=True, cache=True)
-def select_samples(image_flat, pixel_index, weight, keep, black, beta, threshold, n_chunks):  # pragma: no cover
-    """Samples with ``raw - black - beta * weight > threshold`` (and ``keep``), as
-    (ids int32, values float32); order is preserved. ``keep`` is a bool mask over samples.
+def select_samples(image_flat, pixel_index, weight, black, beta, threshold, n_chunks):  # pragma: no cover
+    """Samples with ``raw - black - beta * weight > threshold``, as (ids int32, values float32),
+    in table order.
 
     One pass over the image: chunk ``c`` writes its hits from the start of its own stretch of
     a full-length buffer (only the touched pages of which are ever backed by memory), then the
@@ -79,7 +79,7 @@ def select_samples(image_flat, pixel_index, weight, keep, black, beta, threshold
         pos = c * step
         for k in range(c * step, min(n, (c + 1) * step)):
             val = image_flat[pixel_index[k]] - black - beta * weight[k]
-            if keep[k] and val > threshold:
+            if val > threshold:
                 all_ids[pos] = k
                 all_values[pos] = val
                 pos += 1

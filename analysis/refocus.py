@@ -20,6 +20,7 @@ How a slice is formed:
    ``cos^4`` alone without one). So ``E = sum(b * (raw - black - bg)) / sum(b * weight)``:
    a white scene gives a flat image, lattice and edge patterns cancel, and ``cos^4`` is counted
    once (it is in both the data and the weight; nothing divides by the white image per pixel).
+   Weights have median 1, so values read as raw DN of a median-weight pixel.
    Sites that could receive less than ``min_coverage`` of the typical light are left out.
 4. Sites are interpolated barycentrically onto the regular :class:`ImageGrid`.
 
@@ -121,8 +122,9 @@ def _check_image(image: np.ndarray, table: LightFieldTable) -> np.ndarray:
         raise ParameterError(f"raw image is {image.shape}, the look-up table was built for "
                              f"{(table.height, table.width)}; use the calibration of this camera")
     if image.dtype != np.uint16:
-        if not np.issubdtype(image.dtype, np.integer):
-            raise ParameterError(f"raw image must be integer (uint16 raw counts), got {image.dtype}")
+        if not np.issubdtype(image.dtype, np.integer) or (image.size and (image.min() < 0 or image.max() > 65535)):
+            raise ParameterError(f"raw image must hold raw counts 0 ... 65535 (uint16), got {image.dtype}; "
+                                 "pass the exposure's raw image, not a processed one")
         image = image.astype(np.uint16)
     return np.ascontiguousarray(image).reshape(-1)
 
@@ -174,8 +176,7 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
         kern.value_histogram(values, weights, float(bg), False, _HIST_LO, 1.0 / _HIST_BIN_DN, hist)
         centre, sigma = _median_and_sigma(hist, _HIST_LO, _HIST_BIN_DN)
         threshold = centre + float(noise_sigmas) * max(sigma, _MIN_SIGMA_DN)
-    keep = _all_samples(table)
-    ids, values = kern.select_samples(flat, table.pixel_index, table.weight, keep, float(black), float(bg),
+    ids, values = kern.select_samples(flat, table.pixel_index, table.weight, float(black), float(bg),
                                       float(threshold), numba.get_num_threads())
     return Samples(ids=ids, values=values, background=float(bg), sigma=float(sigma), threshold=float(threshold))
 
@@ -183,14 +184,6 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
 def _stride(table: LightFieldTable) -> int:
     """Every how many samples the background statistics look at: about 200 000 are plenty."""
     return max(1, table.n_samples // 200_000)
-
-
-def _all_samples(table: LightFieldTable) -> np.ndarray:
-    keep = table._scratch.get("all")
-    if keep is None:
-        keep = np.ones(table.n_samples, dtype=np.bool_)
-        table._scratch["all"] = keep
-    return keep
 
 
 def _median_and_sigma(hist: np.ndarray, lo: float, width: float) -> tuple[float, float]:
@@ -346,8 +339,24 @@ def refocus_stack(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray 
     Returns
     -------
     ndarray of shape (A, grid.height, grid.width), float32
-        Light per unit weight (1 for a uniform scene as bright as the white image, after the
-        background is subtracted); 0 where no lens contributes, never NaN.
+        Light per unit weight, background subtracted: raw DN that a median-weight pixel would
+        read from the scene at that place; 0 where no lens contributes, never NaN.
+
+    Raises
+    ------
+    ParameterError
+        If the image does not match the table, alphas are not positive, or ``out`` is wrong.
+
+    Examples
+    --------
+    >>> from analysis.camera_model import CameraModel
+    >>> from analysis.lightfield import build_table_from_model
+    >>> from analysis.sim_camera import simulated_camera_metadata
+    >>> table = build_table_from_model(CameraModel.from_metadata(simulated_camera_metadata(size=64)))
+    >>> dark = np.full((64, 64), 168, dtype=np.uint16)
+    >>> stack = refocus_stack(dark, table, default_alphas(5))
+    >>> stack.shape == (5, *table.grid.shape), float(np.abs(stack).max())
+    (True, 0.0)
     """
     alphas = default_alphas() if alphas is None else alphas
     coeffs = _coeffs(alphas)
@@ -380,9 +389,26 @@ def subaperture_image(image: np.ndarray, table: LightFieldTable, *, fraction: fl
     ``blur_sigma_px`` output pixels and clipped at 0 (so that a product with a slice never turns
     two negative noise values into a positive one).
 
+    Parameters
+    ----------
+    image : ndarray of shape (H, W), uint16
+        Raw sensor counts.
+    table : LightFieldTable
+    fraction : float
+        Radius of the aperture part used, as a fraction of the aperture radius (0, 1].
+    blur_sigma_px : float
+        Gaussian blur in output pixels (0: none).
+    grid, black_level, background, noise_sigmas, min_coverage, samples
+        As in :func:`refocus_stack`.
+
     Returns
     -------
-    ndarray of shape (grid.height, grid.width), float32
+    ndarray of shape (grid.height, grid.width), float32, >= 0
+
+    Raises
+    ------
+    ParameterError
+        If ``fraction`` or ``blur_sigma_px`` is out of range, or the image does not match the table.
     """
     if not (0 < fraction <= 1):
         raise ParameterError(f"fraction of the aperture must be in (0, 1], got {fraction}")
