@@ -51,7 +51,9 @@ class LightFieldTable:
     pixel_index : ndarray of shape (N,), int32
         Flat sensor index ``row * width + col`` of each sample.
     lens : ndarray of shape (N,), int32
-        Index of each sample's lens into the ``lens_*`` arrays.
+        Index of each sample's lens into the ``lens_*`` arrays; non-decreasing (lenses are
+        numbered by row ``j``, then ``i``, and samples follow them), so the samples of lens ``k``
+        are ``searchsorted(lens, k) ... searchsorted(lens, k + 1)``.
     u_m, v_m : ndarray of shape (N,), float32
         Main-lens aperture point seen by each sample, metres from the optical axis (upright frame):
         ``-(offset from the micro-image centre) * optics.aperture_m_per_px``.

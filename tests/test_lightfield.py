@@ -41,6 +41,10 @@ def test_every_green_pixel_inside_a_micro_image_is_listed_once(model, table):
     # Each sample's lens is the nearest lens.
     lens_of_pixel = ij[nearest[table.pixel_index]]
     assert np.array_equal(table.lens_ij[table.lens], lens_of_pixel)
+    # Samples are grouped by lens, lenses ordered by row then column (the refocus relies on it).
+    assert np.all(np.diff(table.lens) >= 0)
+    key = table.lens_ij[:, 1].astype(np.int64) * 10_000 + table.lens_ij[:, 0]
+    assert np.all(np.diff(key) > 0)
 
 
 def test_aperture_coordinate_sends_the_ray_to_that_pixel(model, table):
