@@ -49,7 +49,7 @@ from .exposure import Exposure
 from .image_grid import ImageGrid
 from .lightfield import TABLE_FORMAT_VERSION, LightFieldTable, build_table, load_table, save_table
 from .moments import detect, estimate_noise
-from .ray_depth import RayFit, fit_rays
+from .ray_depth import RayFit, aperture_per_lens_plane, fit_rays
 from .refocus import alphas_for_depth_range, default_alphas, products, refocus_stack, select_samples, \
     subaperture_image
 
@@ -118,7 +118,7 @@ class PipelineParams:
     min_prominence: float = 0.2
     fit_half_width: int = 4
     refine: bool = True
-    refine_alpha_range: float = 0.002
+    refine_alpha_range: float = 0.004
     min_intensity_sigma: float = 8.0
     pixel_size_mm: float | None = None
     depth_per_alpha_mm: float | None = None
@@ -266,26 +266,32 @@ class Result:
 
 _TABLES: dict[tuple, LightFieldTable] = {}
 _TABLES_MAX = 4
+#: The depth fit's table keeps the micro-image rims (half a pixel beyond the aperture's image).
+FIT_TABLE_RIM_PX = -0.5
+_FIT_TABLE_MIN_WEIGHT = 0.05
 
 
-def table_cache_path(cache_dir: Path, calibration: Calibration, grid_oversample: float) -> Path:
+def table_cache_path(cache_dir: Path, calibration: Calibration, grid_oversample: float, rim_px: float = 1.0) -> Path:
     """Where the look-up table of a calibration is kept, beside the calibration cache."""
     serial = calibration.serial or "unknown-serial"
-    return Path(cache_dir) / serial / f"{calibration.white_sha1}.lut.v{TABLE_FORMAT_VERSION}.o{grid_oversample:g}.npz"
+    return (Path(cache_dir) / serial
+            / f"{calibration.white_sha1}.lut.v{TABLE_FORMAT_VERSION}.o{grid_oversample:g}.r{rim_px:g}.npz")
 
 
 def get_table(calibration: Calibration, *, grid_oversample: float = 1.0,
-              cache_dir: Path | None = None) -> LightFieldTable:
+              cache_dir: Path | None = None, rim_px: float = 1.0) -> LightFieldTable:
     """The look-up table of a calibration: from memory, else from ``cache_dir``, else built.
 
     A table built here is written to ``cache_dir`` (when given); :func:`process` writes it
-    again once it holds the refocus normalisations of new alphas.
+    again once it holds the refocus normalisations of new alphas. ``rim_px`` as in
+    :func:`analysis.lightfield.build_table` (the depth fit uses ``FIT_TABLE_RIM_PX``, which
+    keeps the rims of the micro-images).
     """
-    key = (calibration.serial, calibration.white_sha1, float(grid_oversample))
+    key = (calibration.serial, calibration.white_sha1, float(grid_oversample), float(rim_px))
     table = _TABLES.get(key)
     if table is not None:
         return table
-    path = table_cache_path(cache_dir, calibration, grid_oversample) if cache_dir is not None else None
+    path = table_cache_path(cache_dir, calibration, grid_oversample, rim_px) if cache_dir is not None else None
     if path is not None and path.is_file():
         try:
             table = load_table(path)
@@ -293,7 +299,8 @@ def get_table(calibration: Calibration, *, grid_oversample: float = 1.0,
             log.warning("look-up table cache %s unusable (%s); rebuilding it", path, exc)
             table = None
     if table is None or (table.height, table.width) != (calibration.model.height, calibration.model.width):
-        table = build_table(calibration, grid_oversample=grid_oversample)
+        table = build_table(calibration, grid_oversample=grid_oversample, rim_px=rim_px,
+                            min_weight=_FIT_TABLE_MIN_WEIGHT if rim_px < 0 else 0.05)
         if path is not None:
             _save_table_quietly(table, path)
     if len(_TABLES) >= _TABLES_MAX:
@@ -482,7 +489,9 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     fit = None
     if params.refine and len(peaks):
         t = time.perf_counter()
-        peaks, fit = refine_peaks(exposure.image, table, grid, peaks, background=samples.background,
+        fit_table = get_table(calibration, cache_dir=cache_dir, rim_px=FIT_TABLE_RIM_PX)
+        peaks, fit = refine_peaks(exposure.image, fit_table, grid, peaks, background=samples.background,
+                                  aperture_per_lens_plane=aperture_per_lens_plane(calibration.model.optics),
                                   alpha_half_range=params.refine_alpha_range,
                                   min_intensity=params.min_intensity_sigma * max(samples.sigma, 0.5),
                                   merge_radius_px=params.link_radius_px, step=float(alphas[1] - alphas[0]))
@@ -498,7 +507,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
 
 
 def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, peaks: Peaks, *, background: float,
-                 alpha_half_range: float, min_intensity: float, merge_radius_px: float, step: float
+                 aperture_per_lens_plane: float, alpha_half_range: float, min_intensity: float, merge_radius_px: float, step: float
                  ) -> tuple[Peaks, RayFit]:
     """Replace each peak's position and depth by the forward-model fit to the raw pixels.
 
@@ -506,7 +515,8 @@ def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, pea
     (the brighter kept). Returns the refined peaks and the matching rows of the fit.
     """
     sx0, sy0 = grid.to_lens_plane(peaks.x, peaks.y)
-    fit = fit_rays(image, table, sx0, sy0, peaks.alpha, background=background, alpha_half_range=alpha_half_range)
+    fit = fit_rays(image, table, sx0, sy0, peaks.alpha, background=background,
+                   aperture_per_lens_plane=aperture_per_lens_plane, alpha_half_range=alpha_half_range)
     x, y = grid.to_pixels(fit.sx_m, fit.sy_m)
     refined = dataclasses.replace(peaks, x=np.asarray(x, float), y=np.asarray(y, float), alpha=fit.alpha,
                                   residual=fit.residual)

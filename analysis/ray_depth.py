@@ -21,6 +21,7 @@ brightness blurs away when the blur is under a lens pitch or two.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numba
 import numpy as np
@@ -77,6 +78,7 @@ class _TableIndex:
         # Neighbour directions of the hexagonal lattice; a point is in a lens's cell when its
         # offset from the centre projects to at most half of each of them.
         self.normals = np.array([b1, b2, b2 - b1], dtype=np.float64)
+        self.neighbours = np.array([b1, -b1, b2, -b2, b2 - b1, b1 - b2], dtype=np.float64)
         self.half_sq = 0.5 * np.einsum("ij,ij->i", self.normals, self.normals)
         self.pitch_m = float(np.hypot(*b1))
         u = table.u_m.astype(np.float64)
@@ -89,6 +91,12 @@ class _TableIndex:
 
 
 _INDEX: dict[int, _TableIndex] = {}
+
+
+def aperture_per_lens_plane(optics: Any) -> float:
+    """``(P + d) / d``: a lens-plane step between lens centres moves their micro-images by this many
+    aperture metres (optics of :class:`analysis.camera_model.Optics`)."""
+    return optics.aperture_m_per_px * optics.projection_factor / optics.pixel_pitch_m
 
 
 def _pixel_footprint(n_side: int, blur_px: float) -> np.ndarray:
@@ -112,10 +120,17 @@ def _index(table: LightFieldTable) -> _TableIndex:
 
 
 def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m: np.ndarray,
-             alpha0: np.ndarray, *, background: float, alpha_half_range: float = 0.002, n_alpha: int = 41,
-             lateral_half_range_pitches: float = 0.45, n_lateral: int = 5, reach_pitches: float = 1.2,
-             n_sub_side: int = 3, blur_px: float = 0.5, temperature: float = 1.0) -> RayFit:
+             alpha0: np.ndarray, *, background: float, aperture_per_lens_plane: float, alpha_half_range: float = 0.004, n_alpha: int = 33,
+             lateral_half_range_pitches: float = 0.4, reach_pitches: float = 1.2, blur_px: float = 0.5,
+             temperature: float = 1.0, fine: tuple[int, float, int, int] = (15, 0.25, 3, 2)) -> RayFit:
     """Refine position and depth of particles by fitting the forward model to the raw samples.
+
+    Two passes: a coarse grid of ``n_alpha`` depths over ``alpha0 +- alpha_half_range`` and 3 x 3
+    positions (pixels as 2 x 2 points), then a fine grid around the coarse estimate (``fine``: by
+    default 15 depths over twice its spread, 3 x 3 positions over +-0.25 pitch, 2 x 2 points).
+
+    The table should include the micro-images' rim pixels (``build_table(..., rim_px=-0.5)``):
+    where a particle's light splits between lenses, the neighbour's share often lands there.
 
     Parameters
     ----------
@@ -128,18 +143,23 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
     background : float
         Background (DN above black per unit white weight) to subtract, e.g.
         :attr:`analysis.refocus.Samples.background`.
+    aperture_per_lens_plane : float
+        Aperture metres per lens-plane metre between neighbouring micro-images, ``(P + d) / d``
+        (:func:`aperture_per_lens_plane`): how far apart two lenses' images of one aperture point are.
     alpha_half_range, n_alpha : float, int
-        Candidate depths: ``n_alpha`` values of ``c = 1 - 1/alpha`` over ``alpha0 +- alpha_half_range``.
-    lateral_half_range_pitches, n_lateral : float, int
-        Candidate positions: an ``n_lateral`` x ``n_lateral`` grid over ``+-`` this many lens pitches.
+        Candidate depths of the coarse pass.
+    lateral_half_range_pitches : float
+        Candidate positions of the coarse pass, in lens pitches either side of the start.
     reach_pitches : float
         Lenses farther than the largest candidate blur plus this many pitches are left out.
+    blur_px : float
+        Gaussian blur (pixels) of the sensor image (diffraction, crosstalk): each pixel is
+        modelled by points spread over its area and this blur, so partly lit pixels at the
+        edges of a lens's share of the light count by how much of them is lit.
     temperature : float
         Cost difference, in mismatched pixels, over which candidates lose weight by ``1/e``.
-    n_sub_side, blur_px : int, float
-        Each pixel is modelled by ``n_sub_side**2`` points spread over its area and a Gaussian
-        blur of ``blur_px`` pixels (diffraction, pixel crosstalk), so partly lit pixels at the
-        edges of a lens's share of the light count by how much of them is lit.
+    fine : (n_alpha, lateral_half_range_pitches, n_lateral, pixel_points_per_side)
+        The fine pass's grid.
 
     Returns
     -------
@@ -164,44 +184,68 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
         np.empty(0, np.int64)
     counts = idx.start[lenses + 1] - idx.start[lenses]
     ids = np.repeat(idx.start[lenses] - np.cumsum(np.r_[0, counts[:-1]]), counts) + np.arange(counts.sum())
-    per_particle = np.bincount(np.repeat(np.arange(n), lens_count), weights=counts, minlength=n).astype(np.int64)
-    bounds = np.r_[0, np.cumsum(per_particle)].astype(np.int64)
+    lens_ptr = np.r_[0, np.cumsum(lens_count)].astype(np.int64)
+    sample_ptr = np.r_[0, np.cumsum(counts)].astype(np.int64)
     values = (flat[table.pixel_index[ids]].astype(np.float64) - table.black_level) * idx.inv_weight[ids] - background
-    centres = table.lens_xy_m[table.lens[ids]]
+    centres = np.ascontiguousarray(table.lens_xy_m[lenses])
     uv = idx.uv[ids]
     out = np.empty((n, 7))
-    _fit_all(centres, uv, values, bounds, sx0, sy0, c_lo, c_hi, int(n_alpha),
-             lateral_half_range_pitches * idx.pitch_m, int(n_lateral), idx.normals, idx.half_sq,
-             _pixel_footprint(n_sub_side, blur_px) * idx.u_per_px, table.aperture_radius_m ** 2 * (1 + 1e-9), float(temperature), out)
+    _fit_all(centres, sample_ptr, lens_ptr, uv, values, sx0, sy0, c_lo, c_hi, int(n_alpha),
+             lateral_half_range_pitches * idx.pitch_m, idx.pitch_m, idx.normals, idx.half_sq,
+             idx.neighbours * aperture_per_lens_plane, idx.neighbours, _pixel_footprint(2, blur_px) * idx.u_per_px, _pixel_footprint(int(fine[3]), blur_px) * idx.u_per_px,
+             table.aperture_radius_m ** 2 * (1 + 1e-9), float(temperature), int(fine[0]), float(fine[1]), int(fine[2]),
+             out)
     return RayFit(sx_m=out[:, 0], sy_m=out[:, 1], alpha=1.0 / (1.0 - out[:, 2]), intensity=out[:, 3],
                   n_lit=out[:, 4].astype(np.int64), residual=out[:, 5],
                   alpha_spread=out[:, 6] / (1.0 - out[:, 2]) ** 2)
 
 
 @numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
-def _fit_all(centres, uv, values, bounds, sx0, sy0, c_lo, c_hi, n_c, half_lat, n_lat, normals, half_sq, sub, r_ap2,
-             temperature, out):
+def _fit_all(centres, sample_ptr, lens_ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, pitch, normals,
+             half_sq, neigh_u, neigh_s, sub_coarse, sub_fine, r_ap2, temperature, n_c_fine, fine_lat, n_lat_fine, out):
     # One particle per prange iteration; each writes only its own row of `out`.
     for p in prange(sx0.size):
-        _fit_one(centres[bounds[p]:bounds[p + 1]], uv[bounds[p]:bounds[p + 1]], values[bounds[p]:bounds[p + 1]],
-                 sx0[p], sy0[p], c_lo[p], c_hi[p], n_c, half_lat, n_lat, normals, half_sq, sub, r_ap2, temperature, out[p])
+        la, lb = lens_ptr[p], lens_ptr[p + 1]
+        cen = centres[la:lb]
+        ptr = sample_ptr[la:lb + 1]
+        coarse = np.empty(7)
+        _fit_one(cen, ptr, uv, values, sx0[p], sy0[p], c_lo[p], c_hi[p], n_c, half_lat, 3, pitch,
+                 normals, half_sq, neigh_u, neigh_s, sub_coarse, r_ap2, temperature, coarse)
+        if coarse[3] <= 0.0:
+            out[p, :] = coarse
+            continue
+        step = (c_hi[p] - c_lo[p]) / max(n_c - 1, 1)
+        half_c = max(2.0 * coarse[6], 1.5 * step)
+        _fit_one(cen, ptr, uv, values, coarse[0], coarse[1], coarse[2] - half_c, coarse[2] + half_c,
+                 n_c_fine, fine_lat * pitch, n_lat_fine, pitch, normals, half_sq, neigh_u, neigh_s, sub_fine, r_ap2,
+                 temperature, out[p])
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
-def _fit_one(centres, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, n_lat, normals, half_sq, sub, r_ap2, temperature, out):
-    m = values.size
+def _fit_one(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, n_lat, pitch, normals, half_sq,
+             neigh_u, neigh_s, sub, r_ap2, temperature, out):
+    """Grid of (c, s) candidates over the lenses ``centres`` (samples ``ptr[l]:ptr[l+1]`` each);
+    writes mean s_x, s_y, c, best I0, lit samples, residual, std of c."""
     n_sub = sub.shape[0]
+    n_lens = centres.shape[0]
     n_cand = n_c * n_lat * n_lat
     costs = np.empty(n_cand)
     cand = np.empty((n_cand, 3))
     inten = np.empty(n_cand)
     lit = np.empty(n_cand)
     sum_v2 = 0.0
-    for j in range(m):
-        sum_v2 += values[j] * values[j]
+    m = 0
+    if n_lens > 0:
+        for j in range(ptr[0], ptr[n_lens]):
+            sum_v2 += values[j] * values[j]
+        m = ptr[n_lens] - ptr[0]
+    r_ap = np.sqrt(r_ap2)
     k = 0
     for ic in range(n_c):
         c = c_lo + (c_hi - c_lo) * ic / max(n_c - 1, 1)
+        # A lens can only be lit if its cell (or, by crosstalk, a neighbour's) meets the footprint.
+        reach = abs(c) * r_ap + 1.8 * pitch
+        reach2 = reach * reach
         for iy in range(n_lat):
             dy = -half_lat + 2.0 * half_lat * iy / max(n_lat - 1, 1)
             for ix in range(n_lat):
@@ -211,28 +255,51 @@ def _fit_one(centres, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, n_lat, no
                 s_vf = 0.0
                 s_ff = 0.0
                 s_f = 0.0
-                for j in range(m):
-                    frac = 0.0
-                    for q in range(n_sub):
-                        ux = uv[j, 0] + sub[q, 0]
-                        uy = uv[j, 1] + sub[q, 1]
-                        if ux * ux + uy * uy > r_ap2:
-                            continue
-                        qx = sx + c * ux - centres[j, 0]
-                        qy = sy + c * uy - centres[j, 1]
-                        inside = True
-                        for t in range(3):
-                            d = qx * normals[t, 0] + qy * normals[t, 1]
-                            if d > half_sq[t] or d < -half_sq[t]:
-                                inside = False
-                                break
-                        if inside:
-                            frac += 1.0
-                    if frac > 0.0:
-                        frac /= n_sub
-                        s_vf += values[j] * frac
-                        s_ff += frac * frac
-                        s_f += frac
+                for lens in range(n_lens):
+                    ex = centres[lens, 0] - sx
+                    ey = centres[lens, 1] - sy
+                    if ex * ex + ey * ey > reach2:
+                        continue
+                    for j in range(ptr[lens], ptr[lens + 1]):
+                        ox = sx + c * uv[j, 0] - centres[lens, 0]
+                        oy = sy + c * uv[j, 1] - centres[lens, 1]
+                        frac = 0.0
+                        n_ap = 0
+                        for q in range(n_sub):
+                            ux = uv[j, 0] + sub[q, 0]
+                            uy = uv[j, 1] + sub[q, 1]
+                            qx = ox + c * sub[q, 0]
+                            qy = oy + c * sub[q, 1]
+                            if ux * ux + uy * uy > r_ap2:
+                                # Blurred into the neighbouring micro-image (crosstalk): there it sees
+                                # that lens's aperture point, and is lit if its ray enters that lens.
+                                found = False
+                                for nb in range(6):
+                                    vx = ux + neigh_u[nb, 0]
+                                    vy = uy + neigh_u[nb, 1]
+                                    if vx * vx + vy * vy <= r_ap2:
+                                        qx = sx + c * vx - centres[lens, 0] - neigh_s[nb, 0]
+                                        qy = sy + c * vy - centres[lens, 1] - neigh_s[nb, 1]
+                                        found = True
+                                        break
+                                if not found:
+                                    continue
+                            n_ap += 1
+                            inside = True
+                            for t in range(3):
+                                d = qx * normals[t, 0] + qy * normals[t, 1]
+                                if d > half_sq[t] or d < -half_sq[t]:
+                                    inside = False
+                                    break
+                            if inside:
+                                frac += 1.0
+                        if frac > 0.0:
+                            # The devignetted value is light per unit of the white image, which is
+                            # lit over the same part of the pixel that sees an aperture.
+                            frac /= n_ap
+                            s_vf += values[j] * frac
+                            s_ff += frac * frac
+                            s_f += frac
                 if s_ff > 0 and s_vf > 0:
                     costs[k] = sum_v2 - s_vf * s_vf / s_ff
                     inten[k] = s_vf / s_ff
