@@ -7,6 +7,7 @@ test loads the page, waits for a condition in the page, then takes the screensho
 from __future__ import annotations
 
 import base64
+import contextlib
 import itertools
 import json
 import re
@@ -40,7 +41,9 @@ class Browser:
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         port = self._devtools_port(timeout_s=30)
         page = next(t for t in self._json(port, "/json/list") if t["type"] == "page")
-        self.ws = connect(page["webSocketDebuggerUrl"], max_size=64 * 1024 * 1024, open_timeout=10)
+        self._stack = contextlib.ExitStack()
+        self.ws = self._stack.enter_context(
+            connect(page["webSocketDebuggerUrl"], max_size=64 * 1024 * 1024, open_timeout=10))
         self._ids = itertools.count(1)
         self.call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1,
                   mobile=False)
@@ -87,7 +90,8 @@ class Browser:
             if value:
                 return value
             time.sleep(0.2)
-        raise TimeoutError(f"page never satisfied {expression!r}")
+        page_text = self.evaluate("document.body ? document.body.innerText.slice(0, 500) : ''")
+        raise TimeoutError(f"page never satisfied {expression!r}; the page shows: {page_text!r}")
 
     def screenshot(self, path: Path) -> Path:
         data = self.call("Page.captureScreenshot", format="png")["data"]
@@ -96,7 +100,7 @@ class Browser:
 
     def close(self) -> None:
         try:
-            self.ws.close()
+            self._stack.close()
         finally:
             self.proc.terminate()
             try:

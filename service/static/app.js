@@ -160,13 +160,17 @@ $("slice").addEventListener("input", drawSlice);
 
 // -- live updates --------------------------------------------------------------------------
 
-let refreshPending = false;
+// Events come in bursts (job queued, running, done, result): refresh once per burst, and
+// jump to the newest result if any event of the burst asked for it.
+let refreshPending = false, pickPending = false;
 function refreshSoon(pickNewest) {
+  pickPending = pickPending || pickNewest;
   if (refreshPending) return;
   refreshPending = true;
   setTimeout(async () => {
-    refreshPending = false;
-    try { await loadRuns(); await loadExposures(pickNewest); await loadHeader(); } catch (e) { status(String(e)); }
+    const pick = pickPending;
+    refreshPending = false; pickPending = false;
+    try { await loadRuns(); await loadExposures(pick); await loadHeader(); } catch (e) { status(String(e)); }
   }, 150);
 }
 
