@@ -112,7 +112,8 @@ def create_app(settings: Settings | None = None, *, camera: Any = None, store: S
     app = FastAPI(title="plenodust", version="0.1.0", lifespan=lifespan,
                   description="3D dusty-plasma particle coordinates from single Lytro F01 exposures.")
     install_problem_handlers(app)
-    app.add_middleware(BodySizeLimit, limit=settings.max_body_bytes)
+    app.add_middleware(BodySizeLimit, limit=settings.max_body_bytes,
+                       by_path={"/api/v1/calibrations": settings.max_calibration_bytes})
     for module in (exposures, jobs, runs, events, camera_routes, calibrations, health):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")

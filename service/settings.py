@@ -43,6 +43,8 @@ class Settings(BaseSettings):
     api_key: SecretStr | None = None
     # An F01 .lfp is about 16.2 MB; leave room for a RAW+TXT pair in multipart framing.
     max_body_bytes: int = Field(40 * 1024 * 1024, ge=1024)
+    # A camera's 62 white images (.RAW + .TXT) are about 1 GB; they are streamed to disk.
+    max_calibration_bytes: int = Field(2 * 1024 ** 3, ge=1024)
     # Jobs queued or running; beyond this an upload gets 503 with Retry-After.
     queue_capacity: int = Field(64, ge=1)
     retry_after_s: int = Field(2, ge=1)

@@ -17,6 +17,7 @@ either the old file or the new one.
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 import threading
 import time
@@ -266,13 +267,16 @@ class Store:
     def has_calibration(self, serial: str) -> bool:
         return bool(self.db.read("SELECT 1 FROM calibrations WHERE serial = ?", (serial,)))
 
-    def add_calibration(self, serial: str, files: Mapping[str, bytes], *, source: str) -> Path:
-        """Store white-image files for a camera (names kept) and index them."""
-        folder = self.calibration_dir(serial)
-        for name, data in files.items():
-            write_bytes_atomic(folder / _safe_name(name), data)
+    def adopt_calibration(self, serial: str, folder: Path, *, source: str) -> Path:
+        """Move the white-image files of ``folder`` (on the data disk) into the camera's folder."""
+        target = self.calibration_dir(serial)
+        target.mkdir(parents=True, exist_ok=True)
+        # File by file, so a job reading white images already there never sees a gap.
+        for path in sorted(Path(folder).iterdir()):
+            if path.is_file():
+                os.replace(path, target / _safe_name(path.name))
         self.index_calibration(serial, source=source)
-        return folder
+        return target
 
     def index_calibration(self, serial: str, *, source: str) -> None:
         folder = self.calibration_dir(serial)

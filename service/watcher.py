@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import os
 import shutil
 import tempfile
 import threading
@@ -144,13 +143,8 @@ class CameraWatcher:
                 log.error("white images pulled from camera %s are not usable: %s", self.serial, exc)
                 serials = set()
             serial = serials.pop() if len(serials) == 1 else self.serial
-            target = self.store.calibration_dir(serial)
-            target.mkdir(parents=True, exist_ok=True)
-            # File by file, so a job reading white images already there never sees a gap.
-            for path in incoming.iterdir():
-                os.replace(path, target / path.name)
-            incoming.rmdir()
-            self.store.index_calibration(serial, source="camera")
+            self.store.adopt_calibration(serial, incoming, source="camera")
+            shutil.rmtree(incoming)
             self.calibration_serial = serial
             self.bus.publish("calibration", {"serial": serial, "camera": self.serial, "files": len(pulled)})
         self.store.db.set_value(f"calibration_pulled:{self.serial}", "1")

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import shutil
 import tempfile
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, BinaryIO
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse
@@ -24,13 +25,15 @@ _UPLOAD_BODY = {"requestBody": {"required": True, "content": {"multipart/form-da
                                                               "bundles"}}}}}}}
 
 
-def _check_whites(files: dict[str, bytes]) -> list:
-    with tempfile.TemporaryDirectory(prefix="plenodust-whites-") as tmp:
-        for name, data in files.items():
-            (Path(tmp) / name).write_bytes(data)
-        bundles = [n for n in files if n.startswith("data.C.")]
-        source = Path(tmp) if not bundles or "data.C.0" in files else Path(tmp) / bundles[0]
-        return load_white_images(source)
+def _check_whites(folder: Path) -> list:
+    bundles = sorted(folder.glob("data.C.*"))
+    source = folder if not bundles or (folder / "data.C.0").is_file() else bundles[0]
+    return load_white_images(source)
+
+
+def _copy(source: BinaryIO, target: Path) -> None:
+    with open(target, "wb") as out:
+        shutil.copyfileobj(source, out, length=1024 * 1024)
 
 
 @router.get("", summary="Cameras with white images")
@@ -50,22 +53,37 @@ async def upload_calibration(
         raise Problem(415, "Unsupported media type", "send the white images as multipart/form-data, one "
                       "file per part, named as on the camera (MOD_0000.RAW, MOD_0000.TXT, ...)",
                       kind="unsupported-media-type")
-    form = await request.form(max_files=200, max_fields=10)
-    files: dict[str, bytes] = {}
+    # Files go straight to a folder on the data disk: a camera's white images are ~1 GB.
+    staging = Path(tempfile.mkdtemp(prefix=".upload-", dir=state.store.calibrations_dir))
     try:
-        for _, value in form.multi_items():
-            if isinstance(value, UploadFile) and value.filename:
-                name = Path(value.filename.replace("\\", "/")).name
-                files[name] = await value.read()
+        form = await request.form(max_files=400, max_fields=10)
+        try:
+            count = 0
+            for _, value in form.multi_items():
+                if isinstance(value, UploadFile) and value.filename:
+                    name = Path(value.filename.replace("\\", "/")).name.lstrip(".") or "unnamed"
+                    await asyncio.to_thread(_copy, value.file, staging / name)
+                    count += 1
+        finally:
+            await form.close()
+        if not count:
+            raise Problem(400, "No files", "the upload holds no files; attach MOD_nnnn.RAW and .TXT files",
+                          kind="no-files")
+        try:
+            whites = await asyncio.to_thread(_check_whites, staging)
+        except (AnalysisError, OSError) as exc:
+            raise Problem(422, "Not white images", str(exc), kind="not-white-images") from exc
+        camera_serial = _one_serial(whites, serial)
+        await asyncio.to_thread(state.store.adopt_calibration, camera_serial, staging, source="upload")
     finally:
-        await form.close()
-    if not files:
-        raise Problem(400, "No files", "the upload holds no files; attach MOD_nnnn.RAW and .TXT files",
-                      kind="no-files")
-    try:
-        whites = await asyncio.to_thread(_check_whites, files)
-    except (AnalysisError, OSError) as exc:
-        raise Problem(422, "Not white images", str(exc), kind="not-white-images") from exc
+        await asyncio.to_thread(shutil.rmtree, staging, True)
+    state.bus.publish("calibration", {"serial": camera_serial, "images": len(whites)})
+    return JSONResponse({"serial": camera_serial, "white_images": len(whites)}, status_code=201,
+                        headers={"Location": "/api/v1/calibrations"})
+
+
+def _one_serial(whites: list, serial: str | None) -> str:
+    """The camera the white images belong to, or a problem saying why it is unclear."""
     serials = {w.serial for w in whites if w.serial}
     if len(serials) > 1:
         raise Problem(422, "Several cameras", f"the white images come from cameras {sorted(serials)}; upload "
@@ -77,7 +95,4 @@ async def upload_calibration(
     if serial and serial != camera_serial:
         raise Problem(422, "Serial mismatch", f"the white images are from {camera_serial}, not {serial}",
                       kind="serial-mismatch")
-    await asyncio.to_thread(state.store.add_calibration, camera_serial, files, source="upload")
-    state.bus.publish("calibration", {"serial": camera_serial, "images": len(whites)})
-    return JSONResponse({"serial": camera_serial, "white_images": len(whites)}, status_code=201,
-                        headers={"Location": "/api/v1/calibrations"})
+    return camera_serial
