@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from scipy.signal import find_peaks, peak_prominences
+from scipy.signal import find_peaks
 from scipy.spatial import cKDTree
 
 from .errors import ParameterError
@@ -214,8 +214,7 @@ def find_depth_peaks(tracks: Tracks, alphas: np.ndarray, *, min_prominence: floa
     ys = _fill_gaps(tracks.y[rows])
     b = np.where(np.isfinite(b) & (b > 0), b, 0.0)
 
-    # All curves in one 1-D signal separated by zeros, so one find_peaks call serves them all;
-    # a zero separator is never higher than a curve, so prominences stay within their curve.
+    # All curves in one 1-D signal separated by zeros, so one find_peaks call serves them all.
     width = n_slices + 1
     signal = np.zeros(rows.size * width + 1)
     flat_index = (np.arange(rows.size)[:, None] * width + 1 + np.arange(n_slices)).ravel()
@@ -223,10 +222,9 @@ def find_depth_peaks(tracks: Tracks, alphas: np.ndarray, *, min_prominence: floa
     peaks, _ = find_peaks(signal)
     if peaks.size == 0:
         return _empty_peaks()
-    prom, left_base, right_base = peak_prominences(signal, peaks)
     row = (peaks - 1) // width
     k = (peaks - 1) % width
-    height = signal[peaks]
+    prom = _prominence_within(b, row, k)
     curve_max = b.max(axis=1)[row]
     keep = (prom >= min_prominence * curve_max) & (k >= 1) & (k <= n_slices - 2)
     keep &= (signal[peaks - 1] > 0) & (signal[peaks + 1] > 0)
@@ -251,6 +249,29 @@ def find_depth_peaks(tracks: Tracks, alphas: np.ndarray, *, min_prominence: floa
 # Points below this fraction of the maximum are left out of the fit: the tails of a brightness
 # curve are not Gaussian (pixels drop below the threshold), and they would bias the location.
 _FIT_LEVEL = 0.3
+
+
+def _prominence_within(curves: np.ndarray, row: np.ndarray, col: np.ndarray) -> np.ndarray:
+    """Prominence of maxima ``curves[row, col]`` measured within their own curve.
+
+    As scipy's, but a curve's ends (and the zeros where it was not detected) are not valleys: a
+    maximum must fall on both sides, before any higher point, to count. A curve still rising at
+    the end of the alpha range, or flat, has no prominent maximum: its particle lies outside.
+    """
+    out = np.zeros(row.size)
+    for n, (r, c) in enumerate(zip(row.tolist(), col.tolist())):
+        curve = curves[r]
+        top = curve[c]
+        valid = np.flatnonzero(curve > 0)
+        lo, hi = valid[0], valid[-1]
+        left = curve[lo:c + 1][::-1]
+        higher = np.flatnonzero(left > top)
+        left_min = left[: higher[0] if higher.size else left.size].min()
+        right = curve[c:hi + 1]
+        higher = np.flatnonzero(right > top)
+        right_min = right[: higher[0] if higher.size else right.size].min()
+        out[n] = top - max(left_min, right_min)
+    return out
 
 
 def _fit_log_parabola(signal: np.ndarray, peaks: np.ndarray, half: int

@@ -93,9 +93,10 @@ class PipelineParams:
     refine, refine_alpha_range
         Refine each peak's position and depth by fitting the forward model to the raw pixels
         around it (:func:`analysis.ray_depth.fit_rays`), searching ``alpha +- refine_alpha_range``.
-    min_intensity_sigma
-        Refined particles whose fitted pixel intensity is below this many raw-noise sigmas are
-        dropped as noise.
+    min_intensity_sigma, max_fit_residual
+        Refined particles whose fitted pixel intensity is below this many raw-noise sigmas, or
+        whose forward-model misfit per pixel exceeds this fraction of that intensity, are
+        dropped: noise, or a particle whose depth lies outside the alpha range.
     pixel_size_mm, depth_per_alpha_mm, reference_alpha, reference_z_mm
         A user calibration of the physical coordinates (:class:`UserCalibration`); when
         ``pixel_size_mm`` and ``depth_per_alpha_mm`` are None the thin-lens model of the
@@ -120,6 +121,7 @@ class PipelineParams:
     refine: bool = True
     refine_alpha_range: float = 0.004
     min_intensity_sigma: float = 8.0
+    max_fit_residual: float = 0.6
     pixel_size_mm: float | None = None
     depth_per_alpha_mm: float | None = None
     reference_alpha: float = 1.0
@@ -494,7 +496,12 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                                   aperture_per_lens_plane=aperture_per_lens_plane(calibration.model.optics),
                                   alpha_half_range=params.refine_alpha_range,
                                   min_intensity=params.min_intensity_sigma * max(samples.sigma, 0.5),
+                                  max_residual=params.max_fit_residual,
                                   merge_radius_px=params.link_radius_px, step=float(alphas[1] - alphas[0]))
+        # A fit that leaves the stack's alpha range found a particle that belongs to another range.
+        inside = np.flatnonzero((peaks.alpha >= alphas[0]) & (peaks.alpha <= alphas[-1]))
+        if inside.size < len(peaks):
+            peaks, fit = peaks.take(inside), _take_fit(fit, inside)
         timings["refine"] = time.perf_counter() - t
     report(0.9)
     if len(peaks) == 0:
@@ -507,11 +514,13 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
 
 
 def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, peaks: Peaks, *, background: float,
-                 aperture_per_lens_plane: float, alpha_half_range: float, min_intensity: float, merge_radius_px: float, step: float
+                 aperture_per_lens_plane: float, alpha_half_range: float, min_intensity: float,
+                 max_residual: float, merge_radius_px: float, step: float
                  ) -> tuple[Peaks, RayFit]:
     """Replace each peak's position and depth by the forward-model fit to the raw pixels.
 
-    Peaks whose fitted intensity is below ``min_intensity`` are dropped; peaks that converge onto one particle are merged
+    Peaks whose fitted intensity is below ``min_intensity``, or whose misfit exceeds
+    ``max_residual``, are dropped; peaks that converge onto one particle are merged
     (the brighter kept). Returns the refined peaks and the matching rows of the fit.
     """
     sx0, sy0 = grid.to_lens_plane(peaks.x, peaks.y)
@@ -520,7 +529,7 @@ def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, pea
     x, y = grid.to_pixels(fit.sx_m, fit.sy_m)
     refined = dataclasses.replace(peaks, x=np.asarray(x, float), y=np.asarray(y, float), alpha=fit.alpha,
                                   residual=fit.residual)
-    keep = np.flatnonzero(fit.intensity > max(min_intensity, 0.0))
+    keep = np.flatnonzero((fit.intensity > max(min_intensity, 0.0)) & (fit.residual <= max_residual))
     refined, fit = refined.take(keep), _take_fit(fit, keep)
     kept = unique_indices(refined, radius_px=merge_radius_px, alpha_tolerance=step, priority=fit.intensity)
     return refined.take(kept), _take_fit(fit, kept)

@@ -1,0 +1,164 @@
+"""End to end on small simulated exposures: simulator -> pipeline.process -> particles vs truth."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import h5py
+import numpy as np
+import pytest
+
+from analysis.accuracy import score
+from analysis.calibration import load_calibration
+from analysis.errors import CameraMismatchError, ParameterError
+from analysis.exposure import Exposure, read_exposure
+from analysis.pipeline import COLUMNS, PipelineParams, process, process_many, read_csv, read_hdf5_columns
+from analysis.simulate import write_scenario
+
+# A sensor crop of the paper's tilted layer: about a dozen particles, a few seconds to simulate.
+SIZE = 1000
+
+
+@pytest.fixture(scope="module")
+def layer(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("layer")
+    write_scenario(folder, "tilted-layer", 3, size=SIZE)
+    exposure = read_exposure(folder / "IMG_0001.lfp")
+    cache = folder / "cache"
+    calibration = load_calibration(folder / "calibration", exposure.metadata, serial=exposure.serial,
+                                   cache_dir=cache)
+    truth = read_csv(folder / "IMG_0001.truth.csv")
+    nn = json.loads((folder / "scenario.json").read_text())["exposures"][0]["mean_nn_distance_mm"]
+    return folder, exposure, calibration, truth, nn, cache
+
+
+@pytest.fixture(scope="module")
+def layer_result(layer):
+    folder, exposure, calibration, truth, nn, cache = layer
+    return process(exposure, calibration, PipelineParams(), keep_stack=True, cache_dir=cache)
+
+
+def test_tilted_layer_recovered(layer, layer_result):
+    _, _, _, truth, nn, _ = layer
+    assert truth["X"].size >= 8
+    s = score(layer_result.particles, truth, nn_mm=nn)
+    assert s.recall >= 0.9 and s.precision >= 0.9
+    assert s.lateral_rms_over_nn < 0.03
+    # Loose enough to be stable, tight enough to fail if depth were wrong: the crop spans about
+    # +-40 % NN in depth, so constant or mis-scaled depths score far worse.
+    assert s.depth_abs_rms_over_nn < 0.15
+    z_found = np.asarray(layer_result.particles["Z"])
+    order = np.argsort(truth["Y"])
+    assert np.corrcoef(truth["Y"], truth["Z"])[0, 1] > 0.9  # the layer is tilted about the x axis
+    matched_z = np.array([z_found[np.argmin(np.hypot(layer_result.particles["X"] - x, layer_result.particles["Y"] - y))]
+                          for x, y in zip(truth["X"][order], truth["Y"][order])])
+    assert np.corrcoef(matched_z, truth["Z"][order])[0, 1] > 0.8
+
+
+def test_depth_is_not_just_the_stack_maximum(layer):
+    """The raw-pixel fit improves on the brightness maxima of the refocused stack."""
+    folder, exposure, calibration, truth, nn, cache = layer
+    plain = process(exposure, calibration, PipelineParams(refine=False), cache_dir=cache)
+    refined = process(exposure, calibration, PipelineParams(refine=True), cache_dir=cache)
+    s_plain = score(plain.particles, truth, nn_mm=nn)
+    s_refined = score(refined.particles, truth, nn_mm=nn)
+    assert s_refined.depth_abs_rms_over_nn < s_plain.depth_abs_rms_over_nn
+
+
+def test_result_table_and_provenance(layer_result):
+    r = layer_result
+    assert set(COLUMNS) <= set(r.particles)
+    n = len(r)
+    assert all(np.asarray(r.particles[c]).shape == (n,) for c in COLUMNS)
+    assert np.array_equal(r.particles["particle"], np.arange(n))
+    assert r.alphas.shape == (40,) and r.stack.shape == (40, r.grid.height, r.grid.width)
+    assert r.stack.dtype == np.float32 and r.subaperture.shape == (r.grid.height, r.grid.width)
+    assert r.curves.shape == (n, 40)
+    assert np.all((r.particles["alpha"] > r.alphas[0]) & (r.particles["alpha"] < r.alphas[-1]))
+    assert {"refocus", "detect", "link", "peaks", "refine", "total"} <= set(r.timings)
+    assert r.params.to_dict()["n_slices"] == 40 and r.exposure_sha1 and r.white_sha1
+    columns = r.to_columns()
+    assert list(columns) == list(COLUMNS) and isinstance(columns["x"], list)
+
+
+def test_csv_and_hdf5_round_trip(layer_result, tmp_path):
+    r = layer_result
+    back = read_csv(r.to_csv(tmp_path / "p.csv"))
+    for name in COLUMNS:
+        assert np.allclose(back[name], r.particles[name], equal_nan=True)
+    path = r.to_hdf5(tmp_path / "p.h5")
+    with h5py.File(path) as f:
+        assert f["entry"].attrs["NX_class"] == "NXentry"
+        assert f["entry/data"].attrs["NX_class"] == "NXdata" and f["entry/data"].attrs["signal"] == "Z"
+        assert f["entry/data/Z"].attrs["units"] == "mm"
+        assert f["entry/process"].attrs["n_slices"] == 40
+        assert json.loads(f["entry/process/parameters"][()])["alpha_min"] == 0.987
+        assert f["entry/frames/0/stack"].shape == r.stack.shape
+        assert f["entry/frames/0/curves"].shape == r.curves.shape
+    h5 = read_hdf5_columns(path)
+    assert np.allclose(h5["Z"], r.particles["Z"])
+
+
+def test_empty_frame_gives_empty_well_formed_result(layer, tmp_path):
+    _, exposure, calibration, _, _, cache = layer
+    dark = dataclasses.replace(exposure, image=np.full_like(exposure.image, 168), sha1=None)
+    r = process(dark, calibration, cache_dir=cache)
+    assert len(r) == 0 and any("no particles" in w for w in r.warnings)
+    back = read_csv(r.to_csv(tmp_path / "empty.csv"))
+    assert list(back) == list(COLUMNS) and back["x"].size == 0
+
+
+def test_saturated_frame_is_reported_not_processed(layer):
+    _, exposure, calibration, _, _, cache = layer
+    white = dataclasses.replace(exposure, image=np.full_like(exposure.image, 4095), sha1=None)
+    r = process(white, calibration, cache_dir=cache)
+    assert len(r) == 0 and any("saturated" in w for w in r.warnings)
+
+
+def test_alpha_range_without_particles(layer):
+    _, exposure, calibration, _, _, cache = layer
+    r = process(exposure, calibration, PipelineParams(alpha_min=1.03, alpha_max=1.05, n_slices=10), cache_dir=cache)
+    assert len(r) == 0 and r.warnings
+
+
+def test_other_camera_is_refused(layer):
+    _, exposure, calibration, _, _, cache = layer
+    other = dataclasses.replace(exposure, private_metadata={"camera": {"serialNumber": "A999999999"}}, sha1=None)
+    with pytest.raises(CameraMismatchError, match="A999999999"):
+        process(other, calibration, cache_dir=cache)
+    meta = json.loads(json.dumps(exposure.metadata))
+    meta["devices"]["mla"]["lensPitch"] *= 1.0001
+    unknown = Exposure(image=exposure.image, metadata=meta, private_metadata={}, sha1=exposure.sha1)
+    with pytest.raises(CameraMismatchError, match="micro-lens array"):
+        process(unknown, calibration, cache_dir=cache)
+
+
+def test_params_round_trip_and_refusals():
+    p = PipelineParams(n_slices=20, depth_range_mm=[55, 65], pixel_size_mm=0.05, depth_per_alpha_mm=-200)
+    assert PipelineParams.from_dict(json.loads(json.dumps(p.to_dict()))) == p
+    for bad in (dict(n_slices=2), dict(alpha_min=1.1, alpha_max=1.0), dict(aperture_fraction=0),
+                dict(pixel_size_mm=0.05), dict(depth_range_mm=[60, 50])):
+        with pytest.raises(ParameterError):
+            PipelineParams(**bad)
+    with pytest.raises(ParameterError, match="unknown"):
+        PipelineParams.from_dict({"slices": 40})
+
+
+def test_user_calibration_sets_the_scale(layer, layer_result):
+    _, exposure, calibration, _, _, cache = layer
+    r = process(exposure, calibration, PipelineParams(pixel_size_mm=0.05, depth_per_alpha_mm=-300.0,
+                                                      reference_z_mm=60.0), cache_dir=cache)
+    assert r.coordinates["kind"] == "user"
+    p = r.particles
+    assert np.allclose(p["Z"], 60.0 - 300.0 * (p["alpha"] - 1.0))
+    assert np.allclose(np.diff(p["X"]) / np.diff(p["x"]), 0.05, equal_nan=True) or len(r) < 2
+
+
+def test_batch_shares_calibration(layer):
+    folder, exposure, calibration, _, _, cache = layer
+    results = list(process_many([folder / "IMG_0001.lfp", exposure], calibration, cache_dir=cache))
+    assert len(results) == 2 and len(results[0]) == len(results[1])
+    assert np.allclose(results[0].particles["Z"], results[1].particles["Z"])
+    assert not math.isnan(results[0].timings["total"])
