@@ -215,6 +215,67 @@ def interpolate_to_grid(site_sums, site_scale, n_cols, n_rows, col_offset, origi
 
 
 @njit(parallel=True, fastmath=FASTMATH, cache=True)
+def splat_bilinear(ids, values, lens, lens_px, u, v, inv_step, coeffs, width, height, band_start,
+                   acc):  # pragma: no cover - numba
+    """Shift-and-add every sample straight onto the regular output grid, bilinearly, for all alphas.
+
+    Sample ``ids[k]`` sits at output-pixel coordinates ``lens_px[lens]`` plus
+    ``(u, v) * inv_step * coeffs[a]`` and is split over the 4 pixels around it in ``acc``
+    (height * width, n_alpha), which this kernel zeroes first. Contributions whose square
+    leaves the grid are dropped (the normalisation drops the same ones). Bands of samples
+    (``band_start``) are cut by the caller so that bands two apart never write the same row;
+    even bands run in parallel, then odd ones.
+    """
+    n_pixels, n_alpha = acc.shape
+    for row in prange(height):
+        for s in range(row * width, (row + 1) * width):
+            for a in range(n_alpha):
+                acc[s, a] = 0.0
+    step = np.float32(inv_step)
+    n_bands = band_start.size - 1
+    for parity in range(2):
+        for q in prange((n_bands - parity + 1) // 2):
+            band = 2 * q + parity
+            for k in range(band_start[band], band_start[band + 1]):
+                s = ids[k]
+                val = values[k]
+                lk = lens[s]
+                base_c = lens_px[lk, 0]
+                base_r = lens_px[lk, 1]
+                du = u[s] * step
+                dv = v[s] * step
+                for a in range(n_alpha):
+                    fc = base_c + du * coeffs[a]
+                    fr = base_r + dv * coeffs[a]
+                    fc0 = np.floor(fc)
+                    fr0 = np.floor(fr)
+                    c0 = int(fc0)
+                    r0 = int(fr0)
+                    if c0 < 0 or r0 < 0 or c0 + 1 >= width or r0 + 1 >= height:
+                        continue
+                    wc = fc - fc0
+                    wr = fr - fr0
+                    top = val - val * wr           # val * (1 - wr)
+                    bottom = val * wr
+                    p = r0 * width + c0
+                    acc[p, a] += top - top * wc
+                    acc[p + 1, a] += top * wc
+                    acc[p + width, a] += bottom - bottom * wc
+                    acc[p + width + 1, a] += bottom * wc
+
+
+@njit(parallel=True, fastmath=FASTMATH, cache=True)
+def scale_to_slices(acc, scale, out):  # pragma: no cover - numba
+    """``out[a, row, col] = acc[row * width + col, a] * scale[row * width + col, a]``."""
+    n_alpha, height, width = out.shape
+    for row in prange(height):
+        for col in range(width):
+            p = row * width + col
+            for a in range(n_alpha):
+                out[a, row, col] = acc[p, a] * scale[p, a]
+
+
+@njit(parallel=True, fastmath=FASTMATH, cache=True)
 def multiply_slices(stack, image, out):  # pragma: no cover - numba
     """``out[a] = stack[a] * image`` for every slice ``a``."""
     n_alpha, height, width = stack.shape

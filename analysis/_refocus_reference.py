@@ -1,8 +1,9 @@
 """Slow, readable numpy version of the refocus, to check the numba kernels on small inputs.
 
-It works in lens-plane metres throughout and finds each point's triangle as its three nearest
-lens sites (the Delaunay triangle of a hexagonal lattice), with barycentric weights from a
-3 x 3 solve, so it shares no index arithmetic with :mod:`analysis._refocus_kernels`.
+It works in lens-plane metres throughout. For the "triangles" method it finds each point's
+triangle among the six around its nearest lens site, with barycentric weights from a 3 x 3
+solve; for "bilinear" it splats with ``np.add.at`` on the output grid. It shares no index
+arithmetic with :mod:`analysis._refocus_kernels`.
 """
 
 from __future__ import annotations
@@ -61,9 +62,29 @@ def splat_reference(table: LightFieldTable, values: np.ndarray, alpha: float) ->
     return sums
 
 
+def splat_bilinear_reference(table: LightFieldTable, values: np.ndarray, alpha: float,
+                             grid: ImageGrid) -> np.ndarray:
+    """Sums (height, width) of every sample split over the 4 output pixels around its shifted
+    position; samples whose 2 x 2 square is not wholly on the grid are dropped."""
+    c = 1.0 / alpha - 1.0
+    sx = table.lens_xy_m[table.lens, 0] + table.u_m.astype(np.float64) * c
+    sy = table.lens_xy_m[table.lens, 1] + table.v_m.astype(np.float64) * c
+    col, row = grid.to_pixels(sx, sy)
+    c0, r0 = np.floor(col).astype(np.int64), np.floor(row).astype(np.int64)
+    on = (c0 >= 0) & (r0 >= 0) & (c0 + 1 < grid.width) & (r0 + 1 < grid.height)
+    fc, fr = (col - c0)[on], (row - r0)[on]
+    c0, r0, val = c0[on], r0[on], values[on]
+    sums = np.zeros((grid.height, grid.width))
+    np.add.at(sums, (r0, c0), val * (1 - fc) * (1 - fr))
+    np.add.at(sums, (r0, c0 + 1), val * fc * (1 - fr))
+    np.add.at(sums, (r0 + 1, c0), val * (1 - fc) * fr)
+    np.add.at(sums, (r0 + 1, c0 + 1), val * fc * fr)
+    return sums
+
+
 def refocus_reference(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray, grid: ImageGrid, *,
                       black: float, background: float, threshold: float, min_coverage: float,
-                      keep: np.ndarray | None = None) -> np.ndarray:
+                      keep: np.ndarray | None = None, method: str = "triangles") -> np.ndarray:
     """Refocused stack (A, H, W) float64, by the recipe of :mod:`analysis.refocus`.
 
     Each sample's value is ``raw - black - background * weight``; samples whose value is
@@ -74,6 +95,14 @@ def refocus_reference(image: np.ndarray, table: LightFieldTable, alphas: np.ndar
               - background * table.weight.astype(np.float64))
     numerator = np.where(keep & (values > threshold), values, 0.0)
     weights = np.where(keep, table.weight.astype(np.float64), 0.0)
+    if method == "bilinear":
+        out = np.zeros((len(alphas), grid.height, grid.width))
+        for a, alpha in enumerate(alphas):
+            num = splat_bilinear_reference(table, numerator, alpha, grid)
+            den = splat_bilinear_reference(table, weights, alpha, grid)
+            floor = min_coverage * np.median(den[den > 0])
+            out[a] = np.where(den >= floor, num / np.where(den > 0, den, 1.0), 0.0)
+        return out
     cols, rows = np.meshgrid(np.arange(grid.width), np.arange(grid.height))
     px, py = grid.to_lens_plane(cols.reshape(-1), rows.reshape(-1))
     tri, bary = _triangles(table, px, py)

@@ -83,14 +83,15 @@ def peak_position(image: np.ndarray, half: int = 2) -> tuple[float, float]:
     return float((win * cc).sum() / win.sum()), float((win * rr).sum() / win.sum())
 
 
+@pytest.mark.parametrize("method", ["bilinear", "triangles"])
 @pytest.mark.parametrize("noise_sigmas", [None, 3.0])
-def test_numba_matches_reference(model, table, noise_sigmas):
+def test_numba_matches_reference(model, table, noise_sigmas, method):
     image = sparse_random_exposure(model, seed=3)
     alphas = np.array([0.987, 0.9991, 1.0, 1.0042, 1.013])
     samples = select_samples(image, table, noise_sigmas=noise_sigmas)
-    fast = refocus_stack(image, table, alphas, samples=samples)
+    fast = refocus_stack(image, table, alphas, samples=samples, method=method)
     ref = refocus_reference(image, table, alphas, table.grid, black=BLACK, background=samples.background,
-                            threshold=samples.threshold, min_coverage=0.25)
+                            threshold=samples.threshold, min_coverage=0.25, method=method)
     assert fast.dtype == np.float32
     scale = np.abs(ref).max()
     assert np.abs(fast - ref).max() <= 2e-4 * scale
@@ -108,13 +109,14 @@ def test_sparse_selection_keeps_only_samples_above_noise(model, table):
     assert dense.ids.size == table.n_samples
 
 
-def test_point_source_is_sharpest_at_its_alpha_and_lands_at_s_hat(model, table):
+@pytest.mark.parametrize("method", ["bilinear", "triangles"])
+def test_point_source_is_sharpest_at_its_alpha_and_lands_at_s_hat(model, table, method):
     alphas = default_alphas()
     alpha_true = 1.0047
     s_hat = (0.11e-3, -0.07e-3)
     image = point_source_exposure(model, alpha_true, s_hat)
-    stack = refocus_stack(image, table, alphas)
-    sub = subaperture_image(image, table, fraction=0.3, blur_sigma_px=1.0)
+    stack = refocus_stack(image, table, alphas, method=method)
+    sub = subaperture_image(image, table, fraction=0.3, blur_sigma_px=1.0, method=method)
     prod = products(stack, sub)
     peaks = prod.reshape(alphas.size, -1).max(axis=1)
     step = alphas[1] - alphas[0]
@@ -130,12 +132,13 @@ def test_point_source_is_sharpest_at_its_alpha_and_lands_at_s_hat(model, table):
     assert np.hypot(col - expected_col, row - expected_row) < 0.5
 
 
-def test_defocused_point_is_narrower_in_the_sub_aperture_image(model, table):
+@pytest.mark.parametrize("method", ["bilinear", "triangles"])
+def test_defocused_point_is_narrower_in_the_sub_aperture_image(model, table, method):
     alpha_true = 1.010
     s_hat = (0.0, 0.0)
     image = point_source_exposure(model, alpha_true, s_hat, noise_dn=0.0)
-    full = refocus_stack(image, table, np.array([1.0]))[0]
-    sub = subaperture_image(image, table, fraction=0.3, blur_sigma_px=0.0)
+    full = refocus_stack(image, table, np.array([1.0]), method=method)[0]
+    sub = subaperture_image(image, table, fraction=0.3, blur_sigma_px=0.0, method=method)
 
     def rms_radius(img):
         cols, rows = np.meshgrid(np.arange(img.shape[1]), np.arange(img.shape[0]))
@@ -148,31 +151,33 @@ def test_defocused_point_is_narrower_in_the_sub_aperture_image(model, table):
     assert sub.dtype == np.float32 and sub.min() >= 0
 
 
-def test_white_scene_gives_flat_slices(model):
+@pytest.mark.parametrize("method", ["bilinear", "triangles"])
+def test_white_scene_gives_flat_slices(model, method):
     """Normalisation by the light each site could receive: no lattice pattern, cos^4 once."""
     white = render_white_image(model, noise=False)
     dev = (white.astype(np.float32) - BLACK) / (4095.0 - BLACK)
     table = build_table_from_model(model, dev)
     alphas = np.array([0.987, 0.995, 1.0, 1.0071, 1.013])
-    stack = refocus_stack(white, table, alphas, background=0.0, noise_sigmas=None)
+    stack = refocus_stack(white, table, alphas, background=0.0, noise_sigmas=None, method=method)
     inner = stack[:, 6:-6, 6:-6]
     assert np.all(inner > 0)
     assert inner.std() / inner.mean() < 1e-3
     # Without a white image the weights are the thin-lens cos^4: flat to a few per cent.
     cos4_table = build_table_from_model(model)
-    stack = refocus_stack(white, cos4_table, alphas, background=0.0, noise_sigmas=None)
+    stack = refocus_stack(white, cos4_table, alphas, background=0.0, noise_sigmas=None, method=method)
     inner = stack[:, 6:-6, 6:-6]
     assert inner.std() / inner.mean() < 0.03
 
 
-def test_empty_frame_gives_zeros(model, table):
+@pytest.mark.parametrize("method", ["bilinear", "triangles"])
+def test_empty_frame_gives_zeros(model, table, method):
     image = np.full((model.height, model.width), int(BLACK), dtype=np.uint16)
-    stack = refocus_stack(image, table, default_alphas(5))
+    stack = refocus_stack(image, table, default_alphas(5), method=method)
     assert stack.dtype == np.float32 and not np.isnan(stack).any() and not stack.any()
     # Dense: every sample is used, the estimated background is (nearly) 0.
-    stack = refocus_stack(image, table, default_alphas(5), noise_sigmas=None)
+    stack = refocus_stack(image, table, default_alphas(5), noise_sigmas=None, method=method)
     assert not np.isnan(stack).any() and np.abs(stack).max() < 0.05
-    sub = subaperture_image(image, table)
+    sub = subaperture_image(image, table, method=method)
     assert not np.isnan(sub).any() and not sub.any()
 
 
@@ -206,6 +211,8 @@ def test_wrong_image_or_alphas_are_refused(table):
         refocus_stack(image, table, np.array([1.0, -1.0]))
     with pytest.raises(ParameterError, match="fraction"):
         subaperture_image(image, table, fraction=0.0)
+    with pytest.raises(ParameterError, match="method"):
+        refocus_stack(image, table, method="nearest")
 
 
 def test_alphas_for_depth_range_round_trip(model):
