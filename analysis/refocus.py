@@ -14,10 +14,11 @@ How a slice is formed:
    samples above ``noise_sigmas`` robust standard deviations contribute: dust frames are
    sparse, so this skips almost all the work, and the skipped samples are pure noise.
 2. Each sample is shifted (continuously, sub-lens) and split, for all alphas at once, either
-   bilinearly over the 4 output pixels around it (``method="bilinear"``, the default) or
-   barycentrically over the 3 lens sites of the lattice triangle it falls in
-   (``method="triangles"``, the issue's wording), whose values are then interpolated
-   barycentrically onto the regular :class:`ImageGrid`.
+   bilinearly over the 4 output pixels around it (``method="bilinear"``) or barycentrically
+   over the 3 lens sites of the lattice triangle it falls in (``method="triangles"``, the
+   issue's wording), whose values are then interpolated barycentrically onto the regular
+   :class:`ImageGrid`. The default ``"auto"`` takes bilinear on the default grid and
+   coarser ones, triangles on finer ones.
 3. Each pixel (or site) is divided by the light it *could* receive: the same splat of every
    sample's ``weight`` (the normalised white image, which holds ``cos^4`` and micro-lens
    vignetting, or ``cos^4`` alone without one). So ``E = sum(b * (raw - black - bg)) /
@@ -60,8 +61,8 @@ __all__ = ["ImageGrid", "Samples", "default_alphas", "alphas_for_depth_range", "
            "refocus_stack", "subaperture_image", "products", "normalisation", "prepare_normalisations"]
 
 DEFAULT_MIN_COVERAGE = 0.25
-METHODS = ("bilinear", "triangles")
-DEFAULT_METHOD = "bilinear"
+METHODS = ("auto", "bilinear", "triangles")
+DEFAULT_METHOD = "auto"
 # Below this many DN the noise estimate is taken as quantisation-limited.
 _MIN_SIGMA_DN = 0.5
 # Histogram for the robust background and noise: 1/8 DN bins over -512 ... 4096 DN.
@@ -319,9 +320,14 @@ def _release(table: LightFieldTable, acc: np.ndarray) -> None:
     table._scratch[("acc", acc.shape[0], acc.shape[1])] = acc
 
 
-def _check_method(method: str) -> None:
+def _resolve_method(method: str, table: LightFieldTable, grid: ImageGrid) -> str:
+    """``"auto"``: bilinear on grids no finer than one pixel per lens row spacing (where it leaves
+    no holes), lens triangles on finer ones."""
     if method not in METHODS:
         raise ParameterError(f"unknown refocus method {method!r}; choose one of {', '.join(METHODS)}")
+    if method == "auto":
+        return "bilinear" if grid.step_m >= 0.99 * abs(float(table.basis_m[1, 1])) else "triangles"
+    return method
 
 
 def normalisation(table: LightFieldTable, alphas: np.ndarray, *, method: str = DEFAULT_METHOD,
@@ -338,8 +344,8 @@ def normalisation(table: LightFieldTable, alphas: np.ndarray, *, method: str = D
         ``1 / sum(b * weight)`` over all samples (or those in ``keep``); 0 where a target could
         receive less than ``min_coverage`` times the median of those that receive any.
     """
-    _check_method(method)
     grid = table.grid if grid is None else grid
+    method = _resolve_method(method, table, grid)
     coeffs = _coeffs(alphas)
     key = (coeffs.tobytes() + np.float32(min_coverage).tobytes() + key_extra + method.encode()
            + (_grid_key(grid) if method == "bilinear" else b""))
@@ -414,10 +420,12 @@ def refocus_stack(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray 
         Refocus parameters (virtual image plane at ``alpha * P``); default :func:`default_alphas`.
     grid : ImageGrid, optional
         Output grid; default ``table.grid``.
-    method : {"bilinear", "triangles"}
+    method : {"auto", "bilinear", "triangles"}
         ``"bilinear"``: each shifted sample is split over the 4 output pixels around it.
         ``"triangles"``: over the 3 lens sites of its lattice triangle, then the sites are
-        interpolated barycentrically onto the grid. See the module docstring for the choice.
+        interpolated barycentrically onto the grid. ``"auto"``: bilinear unless the grid is
+        finer than one pixel per lens row spacing (where bilinear leaves holes near alpha = 1).
+        See the module docstring for the choice.
     black_level, background, noise_sigmas
         Sample selection, see :func:`select_samples` (ignored when ``samples`` is given).
     min_coverage : float
@@ -450,10 +458,10 @@ def refocus_stack(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray 
     >>> stack.shape == (5, *table.grid.shape), float(np.abs(stack).max())
     (True, 0.0)
     """
-    _check_method(method)
     alphas = default_alphas() if alphas is None else alphas
     coeffs = _coeffs(alphas)
     grid = table.grid if grid is None else grid
+    method = _resolve_method(method, table, grid)
     shape = (coeffs.size, grid.height, grid.width)
     if out is None:
         out = np.empty(shape, dtype=np.float32)
@@ -511,7 +519,7 @@ def subaperture_image(image: np.ndarray, table: LightFieldTable, *, fraction: fl
     if samples is None:
         samples = select_samples(image, table, black_level=black_level, background=background,
                                  noise_sigmas=noise_sigmas)
-    _check_method(method)
+    method = _resolve_method(method, table, grid)
     central = _central_samples(table, fraction)
     inv = _sub_normalisation(table, fraction, method, grid, min_coverage)
     chosen = central[samples.ids]

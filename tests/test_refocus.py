@@ -195,6 +195,13 @@ def test_out_argument_and_finer_grid(model, table):
     fine = table.grid.scaled(2)
     stack = refocus_stack(image, table, alphas, grid=fine)
     assert stack.shape == (3, *fine.shape)
+    # "auto" takes the lens triangles on a finer grid: no holes even at alpha = 1.
+    inner = stack[:, 10:-10, 10:-10]
+    dense = refocus_stack(image, table, alphas, grid=fine, noise_sigmas=None)[:, 10:-10, 10:-10]
+    assert np.count_nonzero(dense == 0) == 0
+    holes = refocus_stack(image, table, alphas, grid=fine, noise_sigmas=None, method="bilinear")[1, 10:-10, 10:-10]
+    assert np.count_nonzero(holes == 0) > 0.05 * holes.size
+    assert inner.max() > 0
     # Same image, sampled twice as densely: the peak lands at the same lens-plane place.
     x1, y1 = table.grid.to_lens_plane(*peak_position(out[1]))
     x2, y2 = fine.to_lens_plane(*peak_position(stack[1], half=4))
