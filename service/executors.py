@@ -84,7 +84,7 @@ class LocalPoolExecutor:
         self.workers = workers
         self.do_warm = warm_up
         self._ctx = multiprocessing.get_context("spawn")
-        self._progress_queue: multiprocessing.Queue = self._ctx.Queue()
+        self._progress_queue: multiprocessing.Queue | None = self._ctx.Queue()
         self._callbacks: dict[str, ProgressCallback] = {}
         self._pool: ProcessPoolExecutor | None = None
         self._warm = False
@@ -114,9 +114,10 @@ class LocalPoolExecutor:
         self._warm = True
 
     def _read_progress(self) -> None:
-        while not self._stop.is_set():
+        queue = self._progress_queue
+        while queue is not None and not self._stop.is_set():
             try:
-                key, fraction = self._progress_queue.get(timeout=0.2)
+                key, fraction = queue.get(timeout=0.2)
             except queue_mod.Empty:
                 continue
             except (EOFError, OSError, ValueError):
@@ -160,6 +161,8 @@ class LocalPoolExecutor:
             self._reader.join(timeout=2)
         self._progress_queue.close()
         self._progress_queue.join_thread()
+        # Drop it now so its semaphores are released before interpreter exit.
+        self._progress_queue = None
         self._warm = False
 
 
