@@ -9,6 +9,11 @@ limit over a real socket.
 from __future__ import annotations
 
 import json
+import os
+import signal
+import socket
+import subprocess
+import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -20,7 +25,7 @@ import numpy as np
 import pytest
 
 from service_helpers import assert_matches_truth, assert_problem, simulate, truth_xyz, variant_lfp, wait_for_job
-from service_server import ServiceProcess
+from service_server import ROOT, ServiceProcess
 
 KEY = "e2e-key"
 AUTH = {"Authorization": f"Bearer {KEY}"}
@@ -196,3 +201,69 @@ def test_sigkill_mid_job_and_restart_finishes_every_exposure_exactly_once(tmp_pa
     # Each exposure's rows are in the run file once.
     assert sorted(ids) == sorted(counts)
     assert [int(np.sum(frames == a["frame"])) for a in accepted] == [counts[a["exposure_id"]] for a in accepted]
+
+
+def _children(pid: int) -> list[int]:
+    found = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        children = (task / "children").read_text().split()
+        found.extend(int(c) for c in children)
+    return found
+
+
+def test_a_dead_worker_process_is_replaced_and_its_job_runs_again(tmp_path: Path, sim) -> None:
+    env = {"PLENODUST_PIPELINE": json.dumps({"n_slices": 1000})}
+    server = ServiceProcess(tmp_path / "data", env=env)
+    try:
+        server.wait_ready()
+        _calibrate(server.url, sim)
+        r = httpx.post(server.url + "/api/v1/exposures", content=sim.lfp[0].read_bytes(),
+                       headers={"Content-Type": "application/octet-stream"})
+        job_id = r.json()["job_id"]
+        deadline = time.monotonic() + 60
+        while httpx.get(server.url + f"/api/v1/jobs/{job_id}").json()["state"] != "running":
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        workers = [pid for pid in _children(server.proc.pid)
+                   if b"resource_tracker" not in Path(f"/proc/{pid}/cmdline").read_bytes()]
+        assert len(workers) == 1
+        os.kill(workers[0], signal.SIGKILL)  # as the kernel's OOM killer would
+        job = wait_for_job(lambda path: httpx.get(server.url + path), job_id, timeout_s=120)
+        assert job["state"] == "done" and job["attempts"] == 2
+        assert httpx.get(server.url + "/readyz").json()["workers"] == "warm"
+        assert "plenodust_job_retries_total 1" in httpx.get(server.url + "/metrics").text
+    finally:
+        server.stop()
+
+
+def test_make_run_demo_shows_clusters_at_once(tmp_path: Path) -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(ROOT / ".cache" / "numba")}
+    demo = subprocess.Popen([sys.executable, "-m", "service.cli.main", "demo", "--port", str(port), "--data",
+                             str(tmp_path), "--every", "1", "--size", "320"], cwd=ROOT, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        first_line = demo.stdout.readline()
+        assert f"http://127.0.0.1:{port}/" in first_line  # the URL comes first
+        deadline = time.monotonic() + 120
+        done = []
+        while len(done) < 2:
+            assert demo.poll() is None and time.monotonic() < deadline, "demo produced no results"
+            try:
+                r = httpx.get(f"http://127.0.0.1:{port}/api/v1/runs/demo/exposures", timeout=5)
+                done = [e for e in r.json().get("items", []) if e["state"] == "done"] if r.status_code == 200 else []
+            except httpx.TransportError:
+                pass
+            time.sleep(0.3)
+        assert {e["source"] for e in done} == {"camera"}
+        assert min(e["frame"] for e in done) == 0  # the first shot is queued at once
+    finally:
+        os.killpg(demo.pid, signal.SIGINT)
+        try:
+            demo.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(demo.pid, signal.SIGKILL)
+            demo.wait()
+        demo.stdout.close()
