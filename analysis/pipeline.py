@@ -49,7 +49,7 @@ from .exposure import Exposure
 from .image_grid import ImageGrid
 from .lightfield import TABLE_FORMAT_VERSION, LightFieldTable, build_table, load_table, save_table
 from .moments import detect, estimate_noise
-from .ray_depth import RayFit, aperture_per_lens_plane, fit_rays
+from .ray_depth import RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
 from .refocus import alphas_for_depth_range, default_alphas, products, refocus_stack, select_samples, \
     subaperture_image
 
@@ -122,6 +122,7 @@ class PipelineParams:
     refine_alpha_range: float = 0.004
     min_intensity_sigma: float = 8.0
     max_fit_residual: float = 0.6
+    shadow_probe: float = 0.0065
     pixel_size_mm: float | None = None
     depth_per_alpha_mm: float | None = None
     reference_alpha: float = 1.0
@@ -496,7 +497,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                                   aperture_per_lens_plane=aperture_per_lens_plane(calibration.model.optics),
                                   alpha_half_range=params.refine_alpha_range,
                                   min_intensity=params.min_intensity_sigma * max(samples.sigma, 0.5),
-                                  max_residual=params.max_fit_residual,
+                                  max_residual=params.max_fit_residual, shadow_probe=params.shadow_probe,
                                   merge_radius_px=params.link_radius_px, step=float(alphas[1] - alphas[0]))
         # A fit that leaves the stack's alpha range found a particle that belongs to another range.
         inside = np.flatnonzero((peaks.alpha >= alphas[0]) & (peaks.alpha <= alphas[-1]))
@@ -515,8 +516,9 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
 
 def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, peaks: Peaks, *, background: float,
                  aperture_per_lens_plane: float, alpha_half_range: float, min_intensity: float,
-                 max_residual: float, merge_radius_px: float, step: float
-                 ) -> tuple[Peaks, RayFit]:
+                 max_residual: float, merge_radius_px: float, step: float, shadow_probe: float = 0.0,
+                 probe_residual: float = 0.2, probe_fraction: float = 0.35, probe_light: float = 0.15,
+                 max_probed: int = 100000) -> tuple[Peaks, RayFit]:
     """Replace each peak's position and depth by the forward-model fit to the raw pixels.
 
     Peaks whose fitted intensity is below ``min_intensity``, or whose misfit exceeds
@@ -526,13 +528,61 @@ def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, pea
     sx0, sy0 = grid.to_lens_plane(peaks.x, peaks.y)
     fit = fit_rays(image, table, sx0, sy0, peaks.alpha, background=background,
                    aperture_per_lens_plane=aperture_per_lens_plane, alpha_half_range=alpha_half_range)
+    refined, fit = _accept(peaks, fit, grid, min_intensity, max_residual)
+    kept = unique_indices(refined, radius_px=merge_radius_px, alpha_tolerance=2 * step, priority=fit.intensity)
+    refined, fit = refined.take(kept), _take_fit(fit, kept)
+    if shadow_probe > 0 and len(refined) and len(refined) <= max_probed:
+        # A particle hidden behind another (same line of sight, other depth) often merges into its
+        # neighbour's brightness curve without a maximum of its own. Take the light of the particles
+        # found so far off the raw samples and probe what is left, in front of and behind each.
+        explained = render_fits(table, fit, aperture_per_lens_plane=aperture_per_lens_plane)
+        # Only where light is left over around a particle (a hidden one's share of the aperture).
+        c_probe = np.abs(1.0 - 1.0 / (fit.alpha - shadow_probe))
+        pitch = float(np.hypot(*table.basis_m[:, 0]))
+        left = unexplained_light(image, table, fit.sx_m, fit.sy_m, c_probe * table.aperture_radius_m + pitch,
+                                 background=background, explained=explained, floor=0.3 * min_intensity)
+        own = fit.intensity * np.maximum(fit.n_lit, 1)
+        parents = np.flatnonzero(left > probe_light * own)
+        n = parents.size
+        probes = refined.take(np.r_[parents, parents])
+        probes = dataclasses.replace(probes, alpha=np.r_[refined.alpha[parents] - shadow_probe,
+                                                         refined.alpha[parents] + shadow_probe])
+        parent_intensity = np.r_[fit.intensity[parents], fit.intensity[parents]]
+        psx, psy = grid.to_lens_plane(probes.x, probes.y)
+        pfit = fit_rays(image, table, psx, psy, probes.alpha, background=background,
+                        aperture_per_lens_plane=aperture_per_lens_plane, alpha_half_range=alpha_half_range,
+                        subtract=explained)
+        # A probe must be a particle of its own: as bright as a good part of the one it hides behind
+        # (what is left of a neighbour's imperfectly modelled light is a tenth of it or less).
+        good = pfit.intensity >= probe_fraction * parent_intensity
+        probes, pfit = probes.take(np.flatnonzero(good)), _take_fit(pfit, np.flatnonzero(good))
+        probes, pfit = _accept(probes, pfit, grid, min_intensity, min(max_residual, probe_residual))
+        if len(probes):
+            both = _concat_peaks(refined, probes)
+            both_fit = _concat_fits(fit, pfit)
+            # Found particles win over probes that converged onto them.
+            priority = np.r_[fit.intensity + 1e12, pfit.intensity]
+            kept = unique_indices(both, radius_px=merge_radius_px, alpha_tolerance=2 * step, priority=priority)
+            refined, fit = both.take(kept), _take_fit(both_fit, kept)
+    return refined, fit
+
+
+def _accept(peaks: Peaks, fit: RayFit, grid: ImageGrid, min_intensity: float, max_residual: float
+            ) -> tuple[Peaks, RayFit]:
+    """Peaks moved to their fitted position and depth, keeping fits with light and a small misfit."""
     x, y = grid.to_pixels(fit.sx_m, fit.sy_m)
-    refined = dataclasses.replace(peaks, x=np.asarray(x, float), y=np.asarray(y, float), alpha=fit.alpha,
-                                  residual=fit.residual)
+    moved = dataclasses.replace(peaks, x=np.asarray(x, float), y=np.asarray(y, float), alpha=fit.alpha,
+                                residual=fit.residual)
     keep = np.flatnonzero((fit.intensity > max(min_intensity, 0.0)) & (fit.residual <= max_residual))
-    refined, fit = refined.take(keep), _take_fit(fit, keep)
-    kept = unique_indices(refined, radius_px=merge_radius_px, alpha_tolerance=step, priority=fit.intensity)
-    return refined.take(kept), _take_fit(fit, kept)
+    return moved.take(keep), _take_fit(fit, keep)
+
+
+def _concat_peaks(a: Peaks, b: Peaks) -> Peaks:
+    return Peaks(**{name: np.concatenate([getattr(a, name), getattr(b, name)]) for name in a.__dataclass_fields__})
+
+
+def _concat_fits(a: RayFit, b: RayFit) -> RayFit:
+    return RayFit(**{name: np.concatenate([getattr(a, name), getattr(b, name)]) for name in a.__dataclass_fields__})
 
 
 def _take_fit(fit: RayFit, index: np.ndarray) -> RayFit:

@@ -93,6 +93,64 @@ class _TableIndex:
 _INDEX: dict[int, _TableIndex] = {}
 
 
+def _gather(idx: "_TableIndex", sx: np.ndarray, sy: np.ndarray, reach: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Samples of the lenses within ``reach`` of each point, as CSR arrays: lens ranges per point
+    (``lens_ptr``), sample ranges per lens (``sample_ptr``), table sample ids, lens centres."""
+    table = idx.table
+    n = sx.size
+    lens_lists = idx.tree.query_ball_point(np.column_stack([sx, sy]), reach)
+    lens_count = np.array([len(lst) for lst in lens_lists], dtype=np.int64)
+    lenses = (np.concatenate([np.asarray(lst, dtype=np.int64) for lst in lens_lists]) if lens_count.sum()
+              else np.empty(0, np.int64))
+    counts = idx.start[lenses + 1] - idx.start[lenses]
+    ids = np.repeat(idx.start[lenses] - np.cumsum(np.r_[0, counts[:-1]]), counts) + np.arange(counts.sum())
+    lens_ptr = np.r_[0, np.cumsum(lens_count)].astype(np.int64)
+    sample_ptr = np.r_[0, np.cumsum(counts)].astype(np.int64)
+    assert lens_ptr.size == n + 1
+    return lens_ptr, sample_ptr, ids.astype(np.int64), np.ascontiguousarray(table.lens_xy_m[lenses])
+
+
+def unexplained_light(image: np.ndarray, table: LightFieldTable, sx_m: np.ndarray, sy_m: np.ndarray,
+                      radius_m: np.ndarray, *, background: float, explained: np.ndarray, floor: float) -> np.ndarray:
+    """Light above ``floor`` (devignetted DN) left unexplained in the lenses within ``radius_m`` of
+    each point, after taking off ``explained`` (from :func:`render_fits`); one sum per point."""
+    idx = _index(table)
+    lens_ptr, sample_ptr, ids, _ = _gather(idx, np.asarray(sx_m, float), np.asarray(sy_m, float),
+                                           np.asarray(radius_m, float))
+    flat = np.ascontiguousarray(image).reshape(-1)
+    left = ((flat[table.pixel_index[ids]].astype(np.float64) - table.black_level) * idx.inv_weight[ids]
+            - background - explained[ids])
+    left = np.where(left > floor, left, 0.0)
+    per_lens = np.add.reduceat(left, sample_ptr[:-1]) if left.size else np.zeros(0)
+    per_lens = np.where(np.diff(sample_ptr) > 0, per_lens, 0.0)
+    owner = np.repeat(np.arange(len(sx_m)), np.diff(lens_ptr))
+    return np.bincount(owner, weights=per_lens, minlength=len(sx_m))
+
+
+def render_fits(table: LightFieldTable, fit: "RayFit", *, aperture_per_lens_plane: float, blur_px: float = 0.5,
+                out: np.ndarray | None = None) -> np.ndarray:
+    """The light that fitted particles put on each sample of ``table`` (devignetted DN).
+
+    Returns
+    -------
+    ndarray of shape (table.n_samples,), float64
+        Added to ``out`` when given.
+    """
+    idx = _index(table)
+    if out is None:
+        out = np.zeros(table.n_samples)
+    if len(fit) == 0:
+        return out
+    c = 1.0 - 1.0 / fit.alpha
+    reach = np.abs(c) * idx.radius_m + 1.8 * idx.pitch_m
+    lens_ptr, sample_ptr, ids, centres = _gather(idx, fit.sx_m, fit.sy_m, reach)
+    _render(centres, sample_ptr, lens_ptr, ids, idx.uv[ids], fit.sx_m, fit.sy_m, c, fit.intensity, idx.normals,
+            idx.half_sq, idx.neighbours * aperture_per_lens_plane, idx.neighbours,
+            _pixel_footprint(3, blur_px) * idx.u_per_px, table.aperture_radius_m ** 2 * (1 + 1e-9), out)
+    return out
+
+
 def aperture_per_lens_plane(optics: Any) -> float:
     """``(P + d) / d``: a lens-plane step between lens centres moves their micro-images by this many
     aperture metres (optics of :class:`analysis.camera_model.Optics`)."""
@@ -122,7 +180,8 @@ def _index(table: LightFieldTable) -> _TableIndex:
 def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m: np.ndarray,
              alpha0: np.ndarray, *, background: float, aperture_per_lens_plane: float, alpha_half_range: float = 0.004, n_alpha: int = 33,
              lateral_half_range_pitches: float = 0.4, reach_pitches: float = 1.2, blur_px: float = 0.5,
-             temperature: float = 1.0, fine: tuple[int, float, int, int] = (15, 0.25, 3, 2)) -> RayFit:
+             temperature: float = 1.0, fine: tuple[int, float, int, int] = (15, 0.25, 3, 2),
+             subtract: np.ndarray | None = None) -> RayFit:
     """Refine position and depth of particles by fitting the forward model to the raw samples.
 
     Two passes: a coarse grid of ``n_alpha`` depths over ``alpha0 +- alpha_half_range`` and 3 x 3
@@ -160,6 +219,9 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
         Cost difference, in mismatched pixels, over which candidates lose weight by ``1/e``.
     fine : (n_alpha, lateral_half_range_pitches, n_lateral, pixel_points_per_side)
         The fine pass's grid.
+    subtract : ndarray of shape (table.n_samples,), optional
+        Light already explained (devignetted DN per sample, from :func:`render_fits`), taken off
+        before fitting: particles hidden behind others are then fitted to what is left.
 
     Returns
     -------
@@ -177,17 +239,10 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
     c_lo = 1.0 - 1.0 / (a0 - alpha_half_range)
     c_hi = 1.0 - 1.0 / (a0 + alpha_half_range)
     reach = np.maximum(np.abs(c_lo), np.abs(c_hi)) * idx.radius_m + (reach_pitches + lateral_half_range_pitches) * idx.pitch_m
-    # Samples of the lenses around each particle, as one concatenated (CSR) array.
-    lens_lists = idx.tree.query_ball_point(np.column_stack([sx0, sy0]), reach)
-    lens_count = np.array([len(lst) for lst in lens_lists], dtype=np.int64)
-    lenses = np.concatenate([np.asarray(lst, dtype=np.int64) for lst in lens_lists]) if lens_count.sum() else \
-        np.empty(0, np.int64)
-    counts = idx.start[lenses + 1] - idx.start[lenses]
-    ids = np.repeat(idx.start[lenses] - np.cumsum(np.r_[0, counts[:-1]]), counts) + np.arange(counts.sum())
-    lens_ptr = np.r_[0, np.cumsum(lens_count)].astype(np.int64)
-    sample_ptr = np.r_[0, np.cumsum(counts)].astype(np.int64)
+    lens_ptr, sample_ptr, ids, centres = _gather(idx, sx0, sy0, reach)
     values = (flat[table.pixel_index[ids]].astype(np.float64) - table.black_level) * idx.inv_weight[ids] - background
-    centres = np.ascontiguousarray(table.lens_xy_m[lenses])
+    if subtract is not None:
+        values -= subtract[ids]
     uv = idx.uv[ids]
     out = np.empty((n, 7))
     _fit_all(centres, sample_ptr, lens_ptr, uv, values, sx0, sy0, c_lo, c_hi, int(n_alpha),
@@ -261,42 +316,9 @@ def _fit_one(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, n_la
                     if ex * ex + ey * ey > reach2:
                         continue
                     for j in range(ptr[lens], ptr[lens + 1]):
-                        ox = sx + c * uv[j, 0] - centres[lens, 0]
-                        oy = sy + c * uv[j, 1] - centres[lens, 1]
-                        frac = 0.0
-                        n_ap = 0
-                        for q in range(n_sub):
-                            ux = uv[j, 0] + sub[q, 0]
-                            uy = uv[j, 1] + sub[q, 1]
-                            qx = ox + c * sub[q, 0]
-                            qy = oy + c * sub[q, 1]
-                            if ux * ux + uy * uy > r_ap2:
-                                # Blurred into the neighbouring micro-image (crosstalk): there it sees
-                                # that lens's aperture point, and is lit if its ray enters that lens.
-                                found = False
-                                for nb in range(6):
-                                    vx = ux + neigh_u[nb, 0]
-                                    vy = uy + neigh_u[nb, 1]
-                                    if vx * vx + vy * vy <= r_ap2:
-                                        qx = sx + c * vx - centres[lens, 0] - neigh_s[nb, 0]
-                                        qy = sy + c * vy - centres[lens, 1] - neigh_s[nb, 1]
-                                        found = True
-                                        break
-                                if not found:
-                                    continue
-                            n_ap += 1
-                            inside = True
-                            for t in range(3):
-                                d = qx * normals[t, 0] + qy * normals[t, 1]
-                                if d > half_sq[t] or d < -half_sq[t]:
-                                    inside = False
-                                    break
-                            if inside:
-                                frac += 1.0
+                        frac = _lit_fraction(uv[j, 0], uv[j, 1], centres[lens, 0], centres[lens, 1], sx, sy, c,
+                                             normals, half_sq, neigh_u, neigh_s, sub, r_ap2)
                         if frac > 0.0:
-                            # The devignetted value is light per unit of the white image, which is
-                            # lit over the same part of the pixel that sees an aperture.
-                            frac /= n_ap
                             s_vf += values[j] * frac
                             s_ff += frac * frac
                             s_f += frac
@@ -347,3 +369,59 @@ def _fit_one(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, n_la
     out[4] = lit[best]
     out[5] = np.sqrt(max(costs[best], 0.0) / max(m, 1)) / i0
     out[6] = np.sqrt(max(mc2 / wsum - mc * mc, 0.0))
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _lit_fraction(u0, v0, cx, cy, sx, sy, c, normals, half_sq, neigh_u, neigh_s, sub, r_ap2):
+    """Fraction of a pixel (aperture point ``(u0, v0)`` behind the lens centred at ``(cx, cy)``)
+    lit by a point at ``(sx, sy)`` with ``c = 1 - 1/alpha``, over the points ``sub`` that stand
+    for its blurred area. Relative to the part of the pixel that sees any aperture, because the
+    devignetted value is light per unit of the white image, which is lit over that same part."""
+    frac = 0.0
+    n_ap = 0
+    ox = sx + c * u0 - cx
+    oy = sy + c * v0 - cy
+    for q in range(sub.shape[0]):
+        ux = u0 + sub[q, 0]
+        uy = v0 + sub[q, 1]
+        qx = ox + c * sub[q, 0]
+        qy = oy + c * sub[q, 1]
+        if ux * ux + uy * uy > r_ap2:
+            # Blurred into the neighbouring micro-image (crosstalk): there it sees that lens's
+            # aperture point, and is lit if its ray enters that lens.
+            found = False
+            for nb in range(6):
+                vx = ux + neigh_u[nb, 0]
+                vy = uy + neigh_u[nb, 1]
+                if vx * vx + vy * vy <= r_ap2:
+                    qx = sx + c * vx - cx - neigh_s[nb, 0]
+                    qy = sy + c * vy - cy - neigh_s[nb, 1]
+                    found = True
+                    break
+            if not found:
+                continue
+        n_ap += 1
+        inside = True
+        for t in range(3):
+            d = qx * normals[t, 0] + qy * normals[t, 1]
+            if d > half_sq[t] or d < -half_sq[t]:
+                inside = False
+                break
+        if inside:
+            frac += 1.0
+    return frac / n_ap if n_ap > 0 else 0.0
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _render(centres, sample_ptr, lens_ptr, ids, uv, sx, sy, c, intensity, normals, half_sq, neigh_u, neigh_s,
+            sub, r_ap2, out):
+    # Serial: particles may share samples, and each adds its light to them.
+    for p in range(sx.size):
+        if intensity[p] <= 0.0:
+            continue
+        for lens in range(lens_ptr[p], lens_ptr[p + 1]):
+            for j in range(sample_ptr[lens], sample_ptr[lens + 1]):
+                f = _lit_fraction(uv[j, 0], uv[j, 1], centres[lens, 0], centres[lens, 1], sx[p], sy[p], c[p],
+                                  normals, half_sq, neigh_u, neigh_s, sub, r_ap2)
+                if f > 0.0:
+                    out[ids[j]] += intensity[p] * f
