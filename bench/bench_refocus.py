@@ -130,7 +130,21 @@ def worker(folder: Path, repeats: int, naive: bool) -> None:
     print(f"sub-aperture:        {t_sub * 1e3:8.1f} ms")
     print(f"products:            {t_prod * 1e3:8.1f} ms")
     print(f"total (table cached):{total * 1e3:8.1f} ms  (budget for this share: 500 ms)")
+
+    def chain():
+        s = rf.select_samples(raw, table)
+        rf.refocus_stack(raw, table, alphas, samples=s, out=stack)
+        rf.products(stack, rf.subaperture_image(raw, table, samples=s), out=prod)
+
+    t_chain, _ = _timed(chain, repeats)
+    print(f"the four in a row:   {t_chain * 1e3:8.1f} ms  (as the pipeline calls them; "
+          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}, threading layer "
+          f"{numba.threading_layer()})")
     print(f"peak RSS:            {_peak_rss_mb():8.0f} MB  (whole process; budget 600 MB for the pipeline)")
+    for method in ("triangles", "bilinear"):
+        t_m, _ = _timed(lambda: rf.refocus_stack(raw, table, alphas, samples=samples, method=method, out=stack),
+                        repeats)
+        print(f"refocus, method {method:9s}: {t_m * 1e3:6.1f} ms")
 
     t_dense, _ = _timed(lambda: rf.refocus_stack(raw, table, alphas, noise_sigmas=None, out=stack), 1)
     print(f"dense refocus (every sample, same kernels): {t_dense * 1e3:.0f} ms "
