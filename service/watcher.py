@@ -187,6 +187,9 @@ class CameraWatcher:
             return queued
 
     def _pull_new(self) -> list[dict]:
+        announced = getattr(self.camera, "new_picture", None)
+        if announced is not None:
+            announced.clear()  # whatever it announced is in the list read below
         seen = {r["picture"] for r in self.store.db.read(
             "SELECT picture FROM camera_pictures WHERE serial = ?", (self.serial,))}
         queued = []
@@ -249,4 +252,14 @@ class CameraWatcher:
                 backoff = min(backoff * 2, 30.0)
             except Exception:
                 log.exception("camera watcher round failed")
-            await asyncio.sleep(backoff)
+            await self._pause(backoff)
+
+    async def _pause(self, seconds: float) -> None:
+        # A Wi-Fi camera announces new pictures (driver.Camera.new_picture): pull at once
+        # then; over USB there is no announcement and the poll interval decides.
+        announced = getattr(self.camera, "new_picture", None)
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            if announced is not None and announced.is_set():
+                return
+            await asyncio.sleep(min(0.05, max(0.0, deadline - time.monotonic())))
