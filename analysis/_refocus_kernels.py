@@ -276,6 +276,32 @@ def scale_to_slices(acc, scale, out):  # pragma: no cover - numba
 
 
 @njit(parallel=True, fastmath=FASTMATH, cache=True)
+def gaussian_blur(image, taps, out):  # pragma: no cover - numba
+    """Separable blur of ``image`` (H, W) float32 with the odd-length kernel ``taps``, zero
+    outside the image, into ``out``. (In numba rather than OpenCV so that one thread pool
+    serves the whole refocus: two pools on two cores wait on each other.)"""
+    height, width = image.shape
+    half = taps.size // 2
+    tmp = np.empty_like(image)
+    for row in prange(height):
+        for col in range(width):
+            acc = np.float32(0.0)
+            for k in range(taps.size):
+                c = col + k - half
+                if 0 <= c < width:
+                    acc += taps[k] * image[row, c]
+            tmp[row, col] = acc
+    for row in prange(height):
+        for col in range(width):
+            acc = np.float32(0.0)
+            for k in range(taps.size):
+                r = row + k - half
+                if 0 <= r < height:
+                    acc += taps[k] * tmp[r, col]
+            out[row, col] = acc
+
+
+@njit(parallel=True, fastmath=FASTMATH, cache=True)
 def multiply_slices(stack, image, out):  # pragma: no cover - numba
     """``out[a] = stack[a] * image`` for every slice ``a``."""
     n_alpha, height, width = stack.shape

@@ -47,7 +47,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numba
 import numpy as np
 
@@ -528,10 +527,20 @@ def subaperture_image(image: np.ndarray, table: LightFieldTable, *, fraction: fl
     img = _to_grid(table, sums, inv, method, grid, out)[0]
     _release(table, sums)
     if blur_sigma_px > 0:
-        img = cv2.GaussianBlur(img, (0, 0), sigmaX=blur_sigma_px, sigmaY=blur_sigma_px,
-                               borderType=cv2.BORDER_CONSTANT)
+        img = _gaussian_blur(img, blur_sigma_px)
     np.maximum(img, 0.0, out=img)
     return img
+
+
+def _gaussian_blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Gaussian blur (truncated at 4 sigma, zero outside the image), float32."""
+    half = max(1, int(np.ceil(4.0 * sigma_px)))
+    x = np.arange(-half, half + 1, dtype=np.float64)
+    taps = np.exp(-0.5 * (x / sigma_px) ** 2)
+    taps = (taps / taps.sum()).astype(np.float32)
+    out = np.empty_like(image)
+    kern.gaussian_blur(np.ascontiguousarray(image), taps, out)
+    return out
 
 
 def _central_samples(table: LightFieldTable, fraction: float) -> np.ndarray:

@@ -3,6 +3,7 @@ numpy reference."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -10,8 +11,8 @@ from analysis._refocus_reference import refocus_reference
 from analysis.camera_model import CameraModel
 from analysis.errors import ParameterError
 from analysis.lightfield import build_table_from_model, load_table, save_table
-from analysis.refocus import (alphas_for_depth_range, default_alphas, normalisation, prepare_normalisations,
-                              products, refocus_stack, select_samples, subaperture_image)
+from analysis.refocus import (_gaussian_blur, alphas_for_depth_range, default_alphas, normalisation,
+                              prepare_normalisations, products, refocus_stack, select_samples, subaperture_image)
 from analysis.scenarios import Particles
 from analysis.sim_camera import simulated_camera_metadata
 from analysis.simulate import particle_truth, render_exposure, render_white_image
@@ -292,3 +293,18 @@ def test_simulated_particles_are_sharp_at_their_true_alpha_and_place(model):
         window = stack[best, r - 4:r + 5, c - 4:c + 5]
         pc, pr = peak_position(window)
         assert np.hypot(pc + c - 4 - col, pr + r - 4 - row) < 0.5
+
+
+def test_blur_is_a_normalised_gaussian():
+    rng = np.random.default_rng(2)
+    image = rng.random((40, 50)).astype(np.float32)
+    ours = _gaussian_blur(image, 1.3)
+    theirs = cv2.GaussianBlur(image, (0, 0), sigmaX=1.3, sigmaY=1.3, borderType=cv2.BORDER_CONSTANT)
+    assert ours.dtype == np.float32
+    assert np.abs(ours - theirs)[6:-6, 6:-6].max() < 2e-3
+    point = np.zeros((21, 21), np.float32)
+    point[10, 10] = 1.0
+    blurred = _gaussian_blur(point, 2.0)
+    assert blurred.sum() == pytest.approx(1.0, abs=1e-4)
+    cols = np.arange(21) - 10
+    assert np.sqrt((blurred.sum(axis=0) * cols ** 2).sum()) == pytest.approx(2.0, rel=0.02)
