@@ -93,6 +93,9 @@ class PipelineParams:
     refine, refine_alpha_range
         Refine each peak's position and depth by fitting the forward model to the raw pixels
         around it (:func:`analysis.ray_depth.fit_rays`), searching ``alpha +- refine_alpha_range``.
+    shadow_probe
+        After the fit, where light is left over around a particle, look for a hidden one this far
+        in alpha in front of and behind it (0 turns it off).
     min_intensity_sigma, max_fit_residual
         Refined particles whose fitted pixel intensity is below this many raw-noise sigmas, or
         whose forward-model misfit per pixel exceeds this fraction of that intensity, are
@@ -517,7 +520,8 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
 def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, peaks: Peaks, *, background: float,
                  aperture_per_lens_plane: float, alpha_half_range: float, min_intensity: float,
                  max_residual: float, merge_radius_px: float, step: float, shadow_probe: float = 0.0,
-                 probe_residual: float = 0.2, probe_fraction: float = 0.35, probe_light: float = 0.15,
+                 probe_residual: float = 0.2, probe_fraction: float = 0.35, probe_light: float = 0.5,
+                 probe_half_range: float = 0.0025,
                  max_probed: int = 100000) -> tuple[Peaks, RayFit]:
     """Replace each peak's position and depth by the forward-model fit to the raw pixels.
 
@@ -543,6 +547,7 @@ def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, pea
                                  background=background, explained=explained, floor=0.3 * min_intensity)
         own = fit.intensity * np.maximum(fit.n_lit, 1)
         parents = np.flatnonzero(left > probe_light * own)
+        log.debug("left-over light / own light: %s", np.round(left / own, 2).tolist())
         n = parents.size
         probes = refined.take(np.r_[parents, parents])
         probes = dataclasses.replace(probes, alpha=np.r_[refined.alpha[parents] - shadow_probe,
@@ -550,8 +555,9 @@ def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, pea
         parent_intensity = np.r_[fit.intensity[parents], fit.intensity[parents]]
         psx, psy = grid.to_lens_plane(probes.x, probes.y)
         pfit = fit_rays(image, table, psx, psy, probes.alpha, background=background,
-                        aperture_per_lens_plane=aperture_per_lens_plane, alpha_half_range=alpha_half_range,
-                        subtract=explained)
+                        aperture_per_lens_plane=aperture_per_lens_plane, alpha_half_range=probe_half_range,
+                        n_alpha=17, subtract=explained)
+        log.debug("shadow probes: %d of %d particles probed, %d found", n, len(refined), len(probes))
         # A probe must be a particle of its own: as bright as a good part of the one it hides behind
         # (what is left of a neighbour's imperfectly modelled light is a tenth of it or less).
         good = pfit.intensity >= probe_fraction * parent_intensity

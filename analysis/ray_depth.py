@@ -81,16 +81,21 @@ class _TableIndex:
         self.neighbours = np.array([b1, -b1, b2, -b2, b2 - b1, b1 - b2], dtype=np.float64)
         self.half_sq = 0.5 * np.einsum("ij,ij->i", self.normals, self.normals)
         self.pitch_m = float(np.hypot(*b1))
-        u = table.u_m.astype(np.float64)
-        v = table.v_m.astype(np.float64)
+        u, v = table.u_m, table.v_m
         self.radius_m = float(np.sqrt(np.max(u * u + v * v))) if u.size else 0.0
-        self.uv = np.column_stack([u, v])
-        self.inv_weight = 1.0 / np.maximum(table.weight.astype(np.float64), 1e-6)
         # Aperture metres per sensor pixel of offset in a micro-image.
         self.u_per_px = table.aperture_radius_m / table.micro_image_radius_px
 
 
 _INDEX: dict[int, _TableIndex] = {}
+
+
+def _uv(table: LightFieldTable, ids: np.ndarray) -> np.ndarray:
+    return np.column_stack([table.u_m[ids], table.v_m[ids]]).astype(np.float64)
+
+
+def _weight(table: LightFieldTable, ids: np.ndarray) -> np.ndarray:
+    return np.maximum(table.weight[ids].astype(np.float64), 1e-6)
 
 
 def _gather(idx: "_TableIndex", sx: np.ndarray, sy: np.ndarray, reach: np.ndarray
@@ -119,7 +124,7 @@ def unexplained_light(image: np.ndarray, table: LightFieldTable, sx_m: np.ndarra
     lens_ptr, sample_ptr, ids, _ = _gather(idx, np.asarray(sx_m, float), np.asarray(sy_m, float),
                                            np.asarray(radius_m, float))
     flat = np.ascontiguousarray(image).reshape(-1)
-    left = ((flat[table.pixel_index[ids]].astype(np.float64) - table.black_level) * idx.inv_weight[ids]
+    left = ((flat[table.pixel_index[ids]].astype(np.float64) - table.black_level) / _weight(table, ids)
             - background - explained[ids])
     left = np.where(left > floor, left, 0.0)
     per_lens = np.add.reduceat(left, sample_ptr[:-1]) if left.size else np.zeros(0)
@@ -134,18 +139,18 @@ def render_fits(table: LightFieldTable, fit: "RayFit", *, aperture_per_lens_plan
 
     Returns
     -------
-    ndarray of shape (table.n_samples,), float64
+    ndarray of shape (table.n_samples,), float32
         Added to ``out`` when given.
     """
     idx = _index(table)
     if out is None:
-        out = np.zeros(table.n_samples)
+        out = np.zeros(table.n_samples, dtype=np.float32)
     if len(fit) == 0:
         return out
     c = 1.0 - 1.0 / fit.alpha
     reach = np.abs(c) * idx.radius_m + 1.8 * idx.pitch_m
     lens_ptr, sample_ptr, ids, centres = _gather(idx, fit.sx_m, fit.sy_m, reach)
-    _render(centres, sample_ptr, lens_ptr, ids, idx.uv[ids], fit.sx_m, fit.sy_m, c, fit.intensity, idx.normals,
+    _render(centres, sample_ptr, lens_ptr, ids, _uv(table, ids), fit.sx_m, fit.sy_m, c, fit.intensity, idx.normals,
             idx.half_sq, idx.neighbours * aperture_per_lens_plane, idx.neighbours,
             _pixel_footprint(3, blur_px) * idx.u_per_px, table.aperture_radius_m ** 2 * (1 + 1e-9), out)
     return out
@@ -240,10 +245,10 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
     c_hi = 1.0 - 1.0 / (a0 + alpha_half_range)
     reach = np.maximum(np.abs(c_lo), np.abs(c_hi)) * idx.radius_m + (reach_pitches + lateral_half_range_pitches) * idx.pitch_m
     lens_ptr, sample_ptr, ids, centres = _gather(idx, sx0, sy0, reach)
-    values = (flat[table.pixel_index[ids]].astype(np.float64) - table.black_level) * idx.inv_weight[ids] - background
+    values = (flat[table.pixel_index[ids]].astype(np.float64) - table.black_level) / _weight(table, ids) - background
     if subtract is not None:
         values -= subtract[ids]
-    uv = idx.uv[ids]
+    uv = _uv(table, ids)
     out = np.empty((n, 7))
     _fit_all(centres, sample_ptr, lens_ptr, uv, values, sx0, sy0, c_lo, c_hi, int(n_alpha),
              lateral_half_range_pitches * idx.pitch_m, idx.pitch_m, idx.normals, idx.half_sq,
