@@ -782,3 +782,9 @@ def warm_up() -> None:
     sub = subaperture_image(image, table)
     product = products(stack, sub)
     locate(product, alphas, PipelineParams(n_slices=3), threshold=float(product.max()) / 2)
+    optics_ratio = aperture_per_lens_plane(model.optics)
+    fit = fit_rays(image, table, np.zeros(1), np.zeros(1), np.ones(1), background=0.0,
+                   aperture_per_lens_plane=optics_ratio)
+    explained = render_fits(table, fit, aperture_per_lens_plane=optics_ratio)
+    unexplained_light(image, table, np.zeros(1), np.zeros(1), np.full(1, 1e-4), background=0.0,
+                      explained=explained, floor=0.0)

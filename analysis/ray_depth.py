@@ -165,6 +165,8 @@ def aperture_per_lens_plane(optics: Any) -> float:
 def _pixel_footprint(n_side: int, blur_px: float) -> np.ndarray:
     """Points (pixels) standing for one pixel's area blurred by a Gaussian: an even grid over the
     pixel, each moved by a fixed Gaussian offset (seeded, so the fit is deterministic)."""
+    if n_side <= 1:
+        return np.zeros((1, 2))  # the pixel centre alone
     g = (np.arange(n_side) + 0.5) / n_side - 0.5
     gx, gy = np.meshgrid(g, g)
     pts = np.column_stack([gx.ravel(), gy.ravel()])
@@ -186,11 +188,11 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
              alpha0: np.ndarray, *, background: float, aperture_per_lens_plane: float, alpha_half_range: float = 0.004, n_alpha: int = 33,
              lateral_half_range_pitches: float = 0.4, reach_pitches: float = 1.2, blur_px: float = 0.5,
              temperature: float = 1.0, fine: tuple[int, float, int, int] = (15, 0.25, 3, 2),
-             subtract: np.ndarray | None = None) -> RayFit:
+             subtract: np.ndarray | None = None, coarse_points: int = 1) -> RayFit:
     """Refine position and depth of particles by fitting the forward model to the raw samples.
 
     Two passes: a coarse grid of ``n_alpha`` depths over ``alpha0 +- alpha_half_range`` and 3 x 3
-    positions (pixels as 2 x 2 points), then a fine grid around the coarse estimate (``fine``: by
+    positions (pixels as ``coarse_points**2`` points; 1: the centre), then a fine grid around the coarse estimate (``fine``: by
     default 15 depths over twice its spread, 3 x 3 positions over +-0.25 pitch, 2 x 2 points).
 
     The table should include the micro-images' rim pixels (``build_table(..., rim_px=-0.5)``):
@@ -252,7 +254,8 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
     out = np.empty((n, 7))
     _fit_all(centres, sample_ptr, lens_ptr, uv, values, sx0, sy0, c_lo, c_hi, int(n_alpha),
              lateral_half_range_pitches * idx.pitch_m, idx.pitch_m, idx.normals, idx.half_sq,
-             idx.neighbours * aperture_per_lens_plane, idx.neighbours, _pixel_footprint(2, blur_px) * idx.u_per_px, _pixel_footprint(int(fine[3]), blur_px) * idx.u_per_px,
+             idx.neighbours * aperture_per_lens_plane, idx.neighbours,
+             _pixel_footprint(coarse_points, blur_px) * idx.u_per_px, _pixel_footprint(int(fine[3]), blur_px) * idx.u_per_px,
              table.aperture_radius_m ** 2 * (1 + 1e-9), float(temperature), int(fine[0]), float(fine[1]), int(fine[2]),
              out)
     return RayFit(sx_m=out[:, 0], sy_m=out[:, 1], alpha=1.0 / (1.0 - out[:, 2]), intensity=out[:, 3],
