@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import hmac
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Annotated, Any
 
 from fastapi import Depends, Request
@@ -33,7 +33,6 @@ class ServiceState:
     runner: JobRunner
     watcher: Any = None          # service.watcher.CameraWatcher when a camera is configured
     started_at: float = 0.0
-    extra: dict = field(default_factory=dict)
 
     @property
     def current_run(self) -> str:

@@ -13,6 +13,7 @@ from starlette.datastructures import UploadFile
 from service.deps import ApiKey, State
 from service.ingest import NotAnExposure, ingest, parse_exposure
 from service.problems import Problem
+from service.queue import QueueFull
 from service.settings import RUN_NAME_PATTERN
 from service.tables import TableFormat, choose_format, table_response
 
@@ -96,7 +97,7 @@ async def upload_exposure(
     try:
         accepted = await asyncio.to_thread(ingest, state.store, state.queue, files, run=run_name,
                                            source="upload", serial=serial, exposure=exposure)
-    except Exception:
+    except QueueFull:
         state.metrics.inc("plenodust_uploads_total", result="rejected")
         raise
     state.metrics.inc("plenodust_uploads_total", result="accepted" if accepted.created else "duplicate")
@@ -134,11 +135,15 @@ def _result_or_409(state: State, exposure_id: str):
 async def get_exposure(exposure_id: str, state: State) -> dict:
     record = _exposure_or_404(state, exposure_id)
     job = state.queue.for_exposure(exposure_id)
-    slices = await asyncio.to_thread(state.store.slice_count, exposure_id) if state.store.has_result(
-        exposure_id) else 0
+    slices, provenance = 0, {}
+    if state.store.has_result(exposure_id):
+        slices = await asyncio.to_thread(state.store.slice_count, exposure_id)
+        provenance = await asyncio.to_thread(state.store.read_provenance, exposure_id)
     return {"id": record.id, "run": record.run, "frame": record.frame, "kind": record.kind,
             "source": record.source, "serial": record.serial, "created_at": record.created_at,
-            "job": job.public() if job else None, "slices": slices}
+            "job": job.public() if job else None, "slices": slices,
+            # What the pipeline wants a user to know (nothing found, saturation, ...) and its timings.
+            "warnings": provenance.get("warnings", []), "timings": provenance.get("timings", {})}
 
 
 @router.get("/{exposure_id}/particles", summary="The particle table of one exposure",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import time
 
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse, PlainTextResponse
@@ -26,7 +27,8 @@ async def readyz(state: State) -> JSONResponse:
     ready = writable and warm
     body = {"ready": ready, "database": "writable" if writable else "not writable",
             "workers": "warm" if warm else "warming", "executor": state.executor.name,
-            "camera": camera["state"], "camera_ok": camera_ok}
+            "camera": camera["state"], "camera_ok": camera_ok,
+            "uptime_s": round(time.time() - state.started_at, 1)}
     return JSONResponse(body, status_code=200 if ready else 503)
 
 
