@@ -14,9 +14,17 @@ coordinates equal those in metres because the map between them is affine.
 from __future__ import annotations
 
 import math
+import os
 
-import numpy as np
-from numba import njit, prange
+# OpenMP threads that spin while waiting at barriers take the CPU from the thread still working
+# when the machine is busy (2 shared cores, other workers): measured on the full pipeline under
+# load, 343 ... 593 ms per exposure with passive waiting against 754 ... 1436 ms with the default,
+# and 3 ... 4 times faster refocus calls. It must be set before numba starts its OpenMP threads
+# (the first parallel kernel call); a value set by the user is kept.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numpy as np  # noqa: E402
+from numba import njit, prange  # noqa: E402
 
 # fastmath without nnan/ninf (the house rule): NaN checks must keep working.
 FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}

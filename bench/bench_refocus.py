@@ -201,7 +201,7 @@ def naive_dense(raw: np.ndarray, table, alphas: np.ndarray) -> float:
         den = np.zeros(n_sites, np.float32)
         one_slice(*args, 1.0 / alpha - 1.0, float(table.black_level), *shape, num, den)
         inv = np.where(den > 0, 1.0 / np.maximum(den, 1e-30), 0).astype(np.float32)
-        rf._to_grid(table, (num * inv)[:, None], inv[:, None], grid, out)
+        rf._to_grid(table, num[:, None], inv[:, None], "triangles", grid, out)
     return time.perf_counter() - t0
 
 
