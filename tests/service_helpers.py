@@ -50,7 +50,7 @@ def variant_lfp(path: Path, k: int, *, serial: str | None = None) -> bytes:
     return lfp_bytes(exposure)
 
 
-def wait_for_job(get, job_id: str, *, timeout_s: float = 90.0, states=("done", "failed")) -> dict:
+def wait_for_job(get, job_id: str, *, timeout_s: float = 180.0, states=("done", "failed")) -> dict:
     """Poll ``GET /api/v1/jobs/{id}`` until the job reaches one of ``states``."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
