@@ -46,7 +46,6 @@ class JobRunner:
         self.config = config or RunnerConfig()
         self._wake = asyncio.Event()
         self._tasks: list[asyncio.Task] = []
-        self.running_jobs: dict[str, float] = {}
 
     def wake(self) -> None:
         """A job was queued: let an idle slot look now rather than at its next poll."""
@@ -94,7 +93,13 @@ class JobRunner:
                 except TimeoutError:
                     pass
                 continue
-            await self._run(job, owner)
+            try:
+                await self._run(job, owner)
+            except asyncio.CancelledError:
+                raise
+            except Exception:
+                # Keep the slot alive; the job's lease runs out and the reaper re-queues it.
+                log.exception("job %s: the runner failed around it", job.id)
 
     async def _run(self, job: Job, owner: str) -> None:
         record = await asyncio.to_thread(self.store.exposure, job.exposure_id)
@@ -115,7 +120,6 @@ class JobRunner:
                                          "progress": fraction, "run": record.run, "frame": record.frame})
 
         heartbeat = asyncio.create_task(self._heartbeat(job, owner, progress))
-        self.running_jobs[job.id] = time.time()
         try:
             output = await self.executor.run(task, on_progress)
         except WorkerLost as exc:
@@ -132,7 +136,6 @@ class JobRunner:
             return
         finally:
             heartbeat.cancel()
-            self.running_jobs.pop(job.id, None)
         await self._finish(job, owner, record, output)
 
     def _task_for(self, record: ExposureRecord) -> JobTask:
