@@ -96,6 +96,9 @@ class PipelineParams:
     shadow_probe
         After the fit, where light is left over around a particle, look for a hidden one this far
         in alpha in front of and behind it (0 turns it off).
+    passes
+        Detection passes: each after the first looks again at the raw image with the light of the
+        particles found so far taken off (crowded clusters, where blobs merge). 1: a single pass.
     min_intensity_sigma, max_fit_residual
         Refined particles whose fitted pixel intensity is below this many raw-noise sigmas, or
         whose forward-model misfit per pixel exceeds this fraction of that intensity, are
@@ -126,6 +129,7 @@ class PipelineParams:
     min_intensity_sigma: float = 8.0
     max_fit_residual: float = 0.6
     shadow_probe: float = 0.0065
+    passes: int = 2
     pixel_size_mm: float | None = None
     depth_per_alpha_mm: float | None = None
     reference_alpha: float = 1.0
@@ -146,6 +150,8 @@ class PipelineParams:
             if len(self.depth_range_mm) != 2 or not (0 < self.depth_range_mm[0] < self.depth_range_mm[1]):
                 raise ParameterError(f"depth_range_mm must be [near, far] with 0 < near < far, "
                                      f"got {self.depth_range_mm}")
+        if not (1 <= self.passes <= 5):
+            raise ParameterError(f"passes must be 1 ... 5, got {self.passes}")
         if not (0 < self.refine_alpha_range < 0.1):
             raise ParameterError(f"refine_alpha_range must be in (0, 0.1), got {self.refine_alpha_range}")
         if not (0 < self.aperture_fraction <= 1):
@@ -502,11 +508,43 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                                   min_intensity=params.min_intensity_sigma * max(samples.sigma, 0.5),
                                   max_residual=params.max_fit_residual, shadow_probe=params.shadow_probe,
                                   merge_radius_px=params.link_radius_px, step=float(alphas[1] - alphas[0]))
-        # A fit that leaves the stack's alpha range found a particle that belongs to another range.
-        inside = np.flatnonzero((peaks.alpha >= alphas[0]) & (peaks.alpha <= alphas[-1]))
-        if inside.size < len(peaks):
-            peaks, fit = peaks.take(inside), _take_fit(fit, inside)
+        peaks, fit = _inside(peaks, fit, alphas)
         timings["refine"] = time.perf_counter() - t
+        t = time.perf_counter()
+        for _ in range(params.passes - 1):
+            # Crowded clusters: blobs of neighbours merge in the product images. Take the light of the
+            # particles found so far off the raw image and look again at what is left.
+            ratio = aperture_per_lens_plane(calibration.model.optics)
+            explained = render_fits(fit_table, fit, aperture_per_lens_plane=ratio)
+            residual = residual_image(exposure.image, fit_table, explained)
+            rs = select_samples(residual, table, noise_sigmas=params.noise_sigmas)
+            rstack = refocus_stack(residual, table, alphas, grid=grid, samples=rs)
+            rsub = subaperture_image(residual, table, fraction=params.aperture_fraction,
+                                     blur_sigma_px=params.blur_sigma_px, grid=grid, samples=rs)
+            new, _ = locate(products(rstack, rsub, out=rstack), alphas, params, threshold=threshold)
+            if len(new) == 0:
+                break
+            new, new_fit = refine_peaks(exposure.image, fit_table, grid, new, background=samples.background,
+                                        aperture_per_lens_plane=ratio, alpha_half_range=params.refine_alpha_range,
+                                        min_intensity=params.min_intensity_sigma * max(samples.sigma, 0.5),
+                                        max_residual=params.max_fit_residual, shadow_probe=0.0,
+                                        merge_radius_px=params.link_radius_px, step=float(alphas[1] - alphas[0]),
+                                        subtract=explained)
+            new, new_fit = _inside(new, new_fit, alphas)
+            # As for hidden particles: a new one must fit well and be about as bright as the others
+            # (left-over light of imperfectly modelled neighbours is a tenth of theirs or less).
+            good = np.flatnonzero((new_fit.residual <= 0.2) & (new_fit.intensity >= 0.35 * np.median(fit.intensity)))
+            new, new_fit = new.take(good), _take_fit(new_fit, good)
+            if len(new) == 0:
+                break
+            both, both_fit = _concat_peaks(peaks, new), _concat_fits(fit, new_fit)
+            priority = np.r_[fit.intensity + 1e12, new_fit.intensity]
+            kept = unique_indices(both, radius_px=params.link_radius_px,
+                                  alpha_tolerance=2 * float(alphas[1] - alphas[0]), priority=priority)
+            if kept.size == len(peaks):
+                break
+            peaks, fit = both.take(kept), _take_fit(both_fit, kept)
+        timings["more_passes"] = time.perf_counter() - t
     report(0.9)
     if len(peaks) == 0:
         if len(tracks):
@@ -521,7 +559,7 @@ def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, pea
                  aperture_per_lens_plane: float, alpha_half_range: float, min_intensity: float,
                  max_residual: float, merge_radius_px: float, step: float, shadow_probe: float = 0.0,
                  probe_residual: float = 0.2, probe_fraction: float = 0.35, probe_light: float = 0.5,
-                 probe_half_range: float = 0.0025,
+                 probe_half_range: float = 0.0025, subtract: np.ndarray | None = None,
                  max_probed: int = 100000) -> tuple[Peaks, RayFit]:
     """Replace each peak's position and depth by the forward-model fit to the raw pixels.
 
@@ -531,7 +569,8 @@ def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, pea
     """
     sx0, sy0 = grid.to_lens_plane(peaks.x, peaks.y)
     fit = fit_rays(image, table, sx0, sy0, peaks.alpha, background=background,
-                   aperture_per_lens_plane=aperture_per_lens_plane, alpha_half_range=alpha_half_range)
+                   aperture_per_lens_plane=aperture_per_lens_plane, alpha_half_range=alpha_half_range,
+                   subtract=subtract)
     refined, fit = _accept(peaks, fit, grid, min_intensity, max_residual)
     kept = unique_indices(refined, radius_px=merge_radius_px, alpha_tolerance=2 * step, priority=fit.intensity)
     refined, fit = refined.take(kept), _take_fit(fit, kept)
@@ -571,6 +610,22 @@ def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, pea
             kept = unique_indices(both, radius_px=merge_radius_px, alpha_tolerance=2 * step, priority=priority)
             refined, fit = both.take(kept), _take_fit(both_fit, kept)
     return refined, fit
+
+
+def _inside(peaks: Peaks, fit: RayFit, alphas: np.ndarray) -> tuple[Peaks, RayFit]:
+    """Drop fits that left the stack's alpha range: they found a particle of another range."""
+    inside = np.flatnonzero((peaks.alpha >= alphas[0]) & (peaks.alpha <= alphas[-1]))
+    if inside.size < len(peaks):
+        return peaks.take(inside), _take_fit(fit, inside)
+    return peaks, fit
+
+
+def residual_image(image: np.ndarray, table: LightFieldTable, explained: np.ndarray) -> np.ndarray:
+    """The raw image minus the light of fitted particles (``explained``, devignetted DN per table
+    sample, from :func:`analysis.ray_depth.render_fits`), clipped to the 12-bit range."""
+    out = np.asarray(image).astype(np.float32).reshape(-1)
+    out[table.pixel_index] -= explained * table.weight
+    return np.clip(np.rint(out), 0, 4095).astype(np.uint16).reshape(np.shape(image))
 
 
 def _accept(peaks: Peaks, fit: RayFit, grid: ImageGrid, min_intensity: float, max_residual: float
