@@ -511,7 +511,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         peaks, fit = _inside(peaks, fit, alphas)
         timings["refine"] = time.perf_counter() - t
         t = time.perf_counter()
-        for _ in range(params.passes - 1):
+        for _ in range(params.passes - 1 if len(peaks) else 0):
             # Crowded clusters: blobs of neighbours merge in the product images. Take the light of the
             # particles found so far off the raw image and look again at what is left.
             ratio = aperture_per_lens_plane(calibration.model.optics)
