@@ -85,11 +85,19 @@ def create_app(settings: Settings | None = None, *, camera: Any = None, store: S
         for job in await asyncio.to_thread(queue.requeue_expired):
             log.info("job %s back to %s after restart", job.id, job.state)
         tasks: list[asyncio.Task] = []
-        warm_task = asyncio.create_task(the_executor.start(), name="executor-start")
-        tasks.append(warm_task)
 
         async def start_runner() -> None:
-            await warm_task
+            # Jobs wait in the queue until the executor is up (pool warm, cluster reachable).
+            while True:
+                try:
+                    await the_executor.start()
+                    break
+                except Exception as exc:
+                    state.executor_error = f"{type(exc).__name__}: {exc}"
+                    log.error("executor %s did not start (%s); trying again in 5 s",
+                              settings.executor, state.executor_error)
+                    await asyncio.sleep(5)
+            state.executor_error = None
             runner.start()
 
         tasks.append(asyncio.create_task(start_runner(), name="runner-start"))

@@ -33,6 +33,7 @@ class ServiceState:
     runner: JobRunner
     watcher: Any = None          # service.watcher.CameraWatcher when a camera is configured
     started_at: float = 0.0
+    executor_error: str | None = None
 
     @property
     def current_run(self) -> str:

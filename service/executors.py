@@ -100,9 +100,12 @@ class LocalPoolExecutor:
                                    initargs=(self._progress_queue, self.do_warm))
 
     async def start(self) -> None:
+        if self._pool is not None:  # a start that failed before: begin again with a fresh pool
+            self._pool.shutdown(wait=False, cancel_futures=True)
         self._pool = self._new_pool()
-        self._reader = threading.Thread(target=self._read_progress, name="pool-progress", daemon=True)
-        self._reader.start()
+        if self._reader is None:
+            self._reader = threading.Thread(target=self._read_progress, name="pool-progress", daemon=True)
+            self._reader.start()
         await self._warm_pool()
 
     async def _warm_pool(self) -> None:
@@ -197,7 +200,7 @@ class DaskExecutor:
     async def start(self) -> None:
         from distributed import Client
 
-        self._client = await Client(self.address, asynchronous=True)
+        self._client = await Client(self.address, asynchronous=True, timeout=10)
         if self.do_warm:
             await self._client.run(warm_up)
         self._warm = True

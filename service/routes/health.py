@@ -29,6 +29,8 @@ async def readyz(state: State) -> JSONResponse:
             "workers": "warm" if warm else "warming", "executor": state.executor.name,
             "camera": camera["state"], "camera_ok": camera_ok,
             "uptime_s": round(time.time() - state.started_at, 1)}
+    if state.executor_error:
+        body["executor_error"] = state.executor_error
     return JSONResponse(body, status_code=200 if ready else 503)
 
 
