@@ -187,13 +187,13 @@ def _index(table: LightFieldTable) -> _TableIndex:
 def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m: np.ndarray,
              alpha0: np.ndarray, *, background: float, aperture_per_lens_plane: float, alpha_half_range: float = 0.004, n_alpha: int = 33,
              lateral_half_range_pitches: float = 0.4, reach_pitches: float = 1.2, blur_px: float = 0.5,
-             temperature: float = 1.0, fine: tuple[int, float, int, int] = (15, 0.25, 3, 2),
-             subtract: np.ndarray | None = None, coarse_points: int = 1) -> RayFit:
+             temperature: float = 1.0, fine: tuple[int, float, int, int] = (9, 0.25, 3, 2),
+             subtract: np.ndarray | None = None, coarse_points: int = 1, coarse_lateral: int = 3) -> RayFit:
     """Refine position and depth of particles by fitting the forward model to the raw samples.
 
     Two passes: a coarse grid of ``n_alpha`` depths over ``alpha0 +- alpha_half_range`` and 3 x 3
     positions (pixels as ``coarse_points**2`` points; 1: the centre), then a fine grid around the coarse estimate (``fine``: by
-    default 15 depths over twice its spread, 3 x 3 positions over +-0.25 pitch, 2 x 2 points).
+    default 9 depths over twice its spread, 3 x 3 positions over +-0.25 pitch, 2 x 2 points).
 
     The table should include the micro-images' rim pixels (``build_table(..., rim_px=-0.5)``):
     where a particle's light splits between lenses, the neighbour's share often lands there.
@@ -257,7 +257,7 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
              idx.neighbours * aperture_per_lens_plane, idx.neighbours,
              _pixel_footprint(coarse_points, blur_px) * idx.u_per_px, _pixel_footprint(int(fine[3]), blur_px) * idx.u_per_px,
              table.aperture_radius_m ** 2 * (1 + 1e-9), float(temperature), int(fine[0]), float(fine[1]), int(fine[2]),
-             out)
+             int(coarse_lateral), out)
     return RayFit(sx_m=out[:, 0], sy_m=out[:, 1], alpha=1.0 / (1.0 - out[:, 2]), intensity=out[:, 3],
                   n_lit=out[:, 4].astype(np.int64), residual=out[:, 5],
                   alpha_spread=out[:, 6] / (1.0 - out[:, 2]) ** 2)
@@ -265,14 +265,15 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
 
 @numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
 def _fit_all(centres, sample_ptr, lens_ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, pitch, normals,
-             half_sq, neigh_u, neigh_s, sub_coarse, sub_fine, r_ap2, temperature, n_c_fine, fine_lat, n_lat_fine, out):
+             half_sq, neigh_u, neigh_s, sub_coarse, sub_fine, r_ap2, temperature, n_c_fine, fine_lat, n_lat_fine,
+             n_lat_coarse, out):
     # One particle per prange iteration; each writes only its own row of `out`.
     for p in prange(sx0.size):
         la, lb = lens_ptr[p], lens_ptr[p + 1]
         cen = centres[la:lb]
         ptr = sample_ptr[la:lb + 1]
         coarse = np.empty(7)
-        _fit_one(cen, ptr, uv, values, sx0[p], sy0[p], c_lo[p], c_hi[p], n_c, half_lat, 3, pitch,
+        _fit_one(cen, ptr, uv, values, sx0[p], sy0[p], c_lo[p], c_hi[p], n_c, half_lat, n_lat_coarse, pitch,
                  normals, half_sq, neigh_u, neigh_s, sub_coarse, r_ap2, temperature, coarse)
         if coarse[3] <= 0.0:
             out[p, :] = coarse
