@@ -48,7 +48,7 @@ from .errors import CameraMismatchError, MetadataError, ParameterError
 from .exposure import Exposure
 from .image_grid import ImageGrid
 from .lightfield import TABLE_FORMAT_VERSION, LightFieldTable, build_table, load_table, save_table
-from .moments import detect, estimate_noise
+from .moments import detect
 from .ray_depth import RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
 from .refocus import alphas_for_depth_range, default_alphas, products, refocus_stack, select_samples, \
     subaperture_image
