@@ -9,6 +9,9 @@ parameter object stored with every result::
     product = stack * sub
     dets    = [detect(s, threshold=t) for s in product]   # analysis.moments
     peaks   = find_depth_peaks(link_tracks(dets), alphas) # analysis.depth
+    peaks   = refine_peaks(image, fit_table, grid, peaks, ...)  # analysis.ray_depth: forward-model
+              # fit to the raw pixels; then hidden particles (probes in front of and behind each),
+              # and a second pass over the raw image with the found particles' light taken off
     X, Y, Z = to_physical(peaks.x, peaks.y, peaks.alpha, grid, ...)  # analysis.coordinates
 
 Each stage is also callable on its own; :func:`process` runs them all and :func:`process_many`
