@@ -61,6 +61,8 @@ __all__ = ["ImageGrid", "Samples", "default_alphas", "alphas_for_depth_range", "
 
 DEFAULT_MIN_COVERAGE = 0.25
 METHODS = ("auto", "bilinear", "triangles")
+# Normalisations kept per table (least recently used dropped first).
+MAX_NORMALISATIONS = 6
 DEFAULT_METHOD = "auto"
 # Below this many DN the noise estimate is taken as quantisation-limited.
 _MIN_SIGMA_DN = 0.5
@@ -348,8 +350,9 @@ def normalisation(table: LightFieldTable, alphas: np.ndarray, *, method: str = D
     coeffs = _coeffs(alphas)
     key = (coeffs.tobytes() + np.float32(min_coverage).tobytes() + key_extra + method.encode()
            + (_grid_key(grid) if method == "bilinear" else b""))
-    cached = table._normalisations.get(key)
+    cached = table._normalisations.pop(key, None)
     if cached is not None:
+        table._normalisations[key] = cached      # most recently used last
         return cached
     ids = np.arange(table.n_samples, dtype=np.int32) if keep is None else np.flatnonzero(keep).astype(np.int32)
     den = _splat(table, ids, table.weight[ids], coeffs, method, grid)
@@ -362,6 +365,9 @@ def normalisation(table: LightFieldTable, alphas: np.ndarray, *, method: str = D
         enough = d >= min_coverage * float(np.median(positive))
         inv[enough, a] = 1.0 / d[enough]
     _release(table, den)
+    # A service asked for many alpha ranges must not grow without bound (about 20 MB each).
+    while len(table._normalisations) >= MAX_NORMALISATIONS:
+        table._normalisations.pop(next(iter(table._normalisations)))
     table._normalisations[key] = inv
     return inv
 

@@ -11,7 +11,7 @@ from analysis._refocus_reference import refocus_reference
 from analysis.camera_model import CameraModel
 from analysis.errors import ParameterError
 from analysis.lightfield import build_table_from_model, load_table, save_table
-from analysis.refocus import (_gaussian_blur, alphas_for_depth_range, default_alphas, normalisation,
+from analysis.refocus import (MAX_NORMALISATIONS, _gaussian_blur, alphas_for_depth_range, default_alphas, normalisation,
                               prepare_normalisations, products, refocus_stack, select_samples, subaperture_image)
 from analysis.scenarios import Particles
 from analysis.sim_camera import simulated_camera_metadata
@@ -182,10 +182,16 @@ def test_empty_frame_gives_zeros(model, table, method):
     assert not np.isnan(sub).any() and not sub.any()
 
 
-def test_normalisation_is_cached_per_alphas(table):
+def test_normalisation_is_cached_per_alphas_and_bounded(model):
+    table = build_table_from_model(model)
     a = normalisation(table, default_alphas(4))
     assert normalisation(table, default_alphas(4)) is a
     assert normalisation(table, default_alphas(5)) is not a
+    for n in range(6, 6 + MAX_NORMALISATIONS):
+        normalisation(table, default_alphas(4))          # kept: used most recently
+        normalisation(table, default_alphas(n))
+    assert len(table._normalisations) == MAX_NORMALISATIONS
+    assert normalisation(table, default_alphas(4)) is a
 
 
 def test_out_argument_and_finer_grid(model, table):
