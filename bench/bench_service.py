@@ -64,6 +64,21 @@ class ResultTimes:
             time.sleep(0.01)
 
 
+def _children(pid: int) -> list[int]:
+    """Worker processes of the service (its resource tracker left out)."""
+    found = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        found += [int(c) for c in (task / "children").read_text().split()]
+    return [c for c in found if b"resource_tracker" not in Path(f"/proc/{c}/cmdline").read_bytes()]
+
+
+def _peak_rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
 def upload(client: httpx.Client, data: bytes, run: str) -> tuple[str, float, int]:
     """Upload until accepted (honouring Retry-After); returns id, start time, refusals."""
     start, refusals = time.perf_counter(), 0
@@ -146,6 +161,8 @@ def main() -> int:
             line = next(m for m in metrics.splitlines() if m.startswith("plenodust_job_duration_seconds_sum"))
             count = next(m for m in metrics.splitlines() if m.startswith("plenodust_job_duration_seconds_count"))
             print(f"worker time per job: {float(line.split()[1]) / float(count.split()[1]):.2f} s (mean)")
+            for name, pid in [("server", server.proc.pid), *(("worker", c) for c in _children(server.proc.pid))]:
+                print(f"peak memory of {name} process {pid}: {_peak_rss_mb(pid):.0f} MB")
         finally:
             server.stop()
     return 0
