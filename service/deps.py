@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import asyncio
 import hmac
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Annotated, Any
 
 from fastapi import Depends, Request
@@ -34,6 +35,8 @@ class ServiceState:
     watcher: Any = None          # service.watcher.CameraWatcher when a camera is configured
     started_at: float = 0.0
     executor_error: str | None = None
+    # Uploads decoded at once (each full F01 frame takes ~60 MB while it is checked).
+    upload_slots: asyncio.Semaphore = field(default_factory=lambda: asyncio.Semaphore(2))
 
     @property
     def current_run(self) -> str:

@@ -88,18 +88,20 @@ async def upload_exposure(
                                             description="camera serial, if the metadata lacks it")] = None,
 ) -> JSONResponse:
     files = await _read_upload(request)
-    try:
-        exposure = await asyncio.to_thread(parse_exposure, files)
-    except NotAnExposure as exc:
-        state.metrics.inc("plenodust_uploads_total", result="invalid")
-        raise Problem(422, "Not an exposure", f"{exc}", kind="not-an-exposure") from exc
     run_name = run or state.current_run
-    try:
-        accepted = await asyncio.to_thread(ingest, state.store, state.queue, files, run=run_name,
-                                           source="upload", serial=serial, exposure=exposure)
-    except QueueFull:
-        state.metrics.inc("plenodust_uploads_total", result="rejected")
-        raise
+    async with state.upload_slots:  # bounds the memory of many uploads at once
+        try:
+            exposure = await asyncio.to_thread(parse_exposure, files)
+        except NotAnExposure as exc:
+            state.metrics.inc("plenodust_uploads_total", result="invalid")
+            raise Problem(422, "Not an exposure", f"{exc}", kind="not-an-exposure") from exc
+        try:
+            accepted = await asyncio.to_thread(ingest, state.store, state.queue, files, run=run_name,
+                                               source="upload", serial=serial, exposure=exposure)
+        except QueueFull:
+            state.metrics.inc("plenodust_uploads_total", result="rejected")
+            raise
+        del exposure
     state.metrics.inc("plenodust_uploads_total", result="accepted" if accepted.created else "duplicate")
     if accepted.created:
         state.runner.wake()
