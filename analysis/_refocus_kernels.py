@@ -223,22 +223,22 @@ def interpolate_to_grid(site_sums, site_scale, n_cols, n_rows, col_offset, origi
 
 
 @njit(parallel=True, fastmath=FASTMATH, cache=True)
-def splat_bilinear(ids, values, lens, lens_px, u, v, inv_step, coeffs, width, height, band_start,
-                   acc):  # pragma: no cover - numba
+def splat_bilinear(ids, values, lens, lens_px, u, v, inv_step, coeffs, band_start, out):  # pragma: no cover
     """Shift-and-add every sample straight onto the regular output grid, bilinearly, for all alphas.
 
     Sample ``ids[k]`` sits at output-pixel coordinates ``lens_px[lens]`` plus
-    ``(u, v) * inv_step * coeffs[a]`` and is split over the 4 pixels around it in ``acc``
-    (height * width, n_alpha), which this kernel zeroes first. Contributions whose square
-    leaves the grid are dropped (the normalisation drops the same ones). Bands of samples
-    (``band_start``) are cut by the caller so that bands two apart never write the same row;
-    even bands run in parallel, then odd ones.
+    ``(u, v) * inv_step * coeffs[a]`` and is split over the 4 pixels around it in slice ``a``
+    of ``out`` (n_alpha, height, width), which this kernel zeroes first. Contributions whose
+    square leaves the grid are dropped (the normalisation drops the same ones). Bands of
+    samples (``band_start``) are cut by the caller so that bands two apart never write the
+    same row; even bands run in parallel, then odd ones.
     """
-    n_pixels, n_alpha = acc.shape
-    for row in prange(height):
-        for s in range(row * width, (row + 1) * width):
-            for a in range(n_alpha):
-                acc[s, a] = 0.0
+    n_alpha, height, width = out.shape
+    for plane_row in prange(n_alpha * height):
+        a = plane_row // height
+        row = plane_row - a * height
+        for col in range(width):
+            out[a, row, col] = 0.0
     step = np.float32(inv_step)
     n_bands = band_start.size - 1
     for parity in range(2):
@@ -265,22 +265,21 @@ def splat_bilinear(ids, values, lens, lens_px, u, v, inv_step, coeffs, width, he
                     wr = fr - fr0
                     top = val - val * wr           # val * (1 - wr)
                     bottom = val * wr
-                    p = r0 * width + c0
-                    acc[p, a] += top - top * wc
-                    acc[p + 1, a] += top * wc
-                    acc[p + width, a] += bottom - bottom * wc
-                    acc[p + width + 1, a] += bottom * wc
+                    out[a, r0, c0] += top - top * wc
+                    out[a, r0, c0 + 1] += top * wc
+                    out[a, r0 + 1, c0] += bottom - bottom * wc
+                    out[a, r0 + 1, c0 + 1] += bottom * wc
 
 
 @njit(parallel=True, fastmath=FASTMATH, cache=True)
-def scale_to_slices(acc, scale, out):  # pragma: no cover - numba
-    """``out[a, row, col] = acc[row * width + col, a] * scale[row * width + col, a]``."""
+def scale_slices(out, scale):  # pragma: no cover - numba
+    """``out *= scale`` for (n_alpha, height, width) arrays, in parallel over rows."""
     n_alpha, height, width = out.shape
-    for row in prange(height):
+    for plane_row in prange(n_alpha * height):
+        a = plane_row // height
+        row = plane_row - a * height
         for col in range(width):
-            p = row * width + col
-            for a in range(n_alpha):
-                out[a, row, col] = acc[p, a] * scale[p, a]
+            out[a, row, col] *= scale[a, row, col]
 
 
 @njit(parallel=True, fastmath=FASTMATH, cache=True)

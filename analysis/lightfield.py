@@ -146,6 +146,11 @@ class LightFieldTable:
         return float(np.abs(dv).max()) if dv.size else 0.0
 
     @cached_property
+    def max_abs_v_m(self) -> float:
+        """Largest ``|v|`` of any sample (metres)."""
+        return float(np.abs(self.v_m).max()) if self.v_m.size else 0.0
+
+    @cached_property
     def inverse_basis_m(self) -> np.ndarray:
         """ndarray (2, 2): lattice steps per lens-plane metre (inverse of `basis_m`)."""
         return np.linalg.inv(self.basis_m)

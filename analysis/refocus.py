@@ -252,8 +252,7 @@ def _targets(table: LightFieldTable, method: str, grid: ImageGrid) -> tuple[np.n
         col, row = grid.to_pixels(table.lens_xy_m[:, 0], table.lens_xy_m[:, 1])
         lens_px = np.stack([col, row], axis=1).astype(np.float32)
         table._scratch[key] = lens_px
-    v_max = float(np.abs(table.v_m).max()) if table.n_samples else 0.0
-    return lens_px[:, 1], v_max / grid.step_m, grid.height * grid.width
+    return lens_px[:, 1], table.max_abs_v_m / grid.step_m, grid.height * grid.width
 
 
 def _band_starts(table: LightFieldTable, ids: np.ndarray, coeffs: np.ndarray, method: str,
@@ -293,32 +292,39 @@ def _band_starts(table: LightFieldTable, ids: np.ndarray, coeffs: np.ndarray, me
     return np.searchsorted(sample_rows, edges.astype(np.float32), side="left").astype(np.int64)
 
 
-def _splat(table: LightFieldTable, ids: np.ndarray, values: np.ndarray, coeffs: np.ndarray, method: str,
-           grid: ImageGrid) -> np.ndarray:
-    """Splat samples onto lens sites ("triangles") or output pixels ("bilinear"): the sums,
-    float32 (n_targets, n_alpha).
+def _refocus_into(table: LightFieldTable, ids: np.ndarray, values: np.ndarray, coeffs: np.ndarray, method: str,
+                  grid: ImageGrid, scale: np.ndarray | None, out: np.ndarray) -> np.ndarray:
+    """Splat samples and write the slices (n_alpha, height, width) into ``out``.
 
-    The returned array is a work buffer of the table; hand it back with `_release`.
+    ``scale`` is the normalisation (see :func:`normalisation`); ``None`` leaves the raw sums,
+    in the method's own layout (bilinear: ``out`` itself; triangles: returned site sums).
     """
-    _, _, n_targets = _targets(table, method, grid)
-    key = ("acc", n_targets, coeffs.size)
-    acc = table._scratch.pop(key, None)   # pop: a concurrent caller allocates its own
-    if acc is None:
-        acc = np.empty((n_targets, coeffs.size), dtype=np.float32)
     bands = _band_starts(table, ids, coeffs, method, grid)
-    if method == "triangles":
-        n_rows, n_cols = table.site_shape
-        kern.splat(ids, values, table.lens, table.lens_site, table.u_m, table.v_m, table.inverse_basis_m,
-                   coeffs, n_cols, n_rows, table.site_col_offset, bands, acc)
-    else:
+    if method == "bilinear":
         lens_px = table._scratch[("lens_px", _grid_key(grid))]
         kern.splat_bilinear(ids, values, table.lens, lens_px, table.u_m, table.v_m, 1.0 / grid.step_m,
-                            coeffs, grid.width, grid.height, bands, acc)
-    return acc
-
-
-def _release(table: LightFieldTable, acc: np.ndarray) -> None:
-    table._scratch[("acc", acc.shape[0], acc.shape[1])] = acc
+                            coeffs, bands, out)
+        if scale is not None:
+            kern.scale_slices(out, scale)
+        return out
+    n_rows, n_cols = table.site_shape
+    key = ("acc", n_rows * n_cols, coeffs.size)
+    acc = table._scratch.pop(key, None)   # pop: a concurrent caller allocates its own
+    if acc is None:
+        acc = np.empty((n_rows * n_cols, coeffs.size), dtype=np.float32)
+    kern.splat(ids, values, table.lens, table.lens_site, table.u_m, table.v_m, table.inverse_basis_m,
+               coeffs, n_cols, n_rows, table.site_col_offset, bands, acc)
+    if scale is None:
+        return acc                        # the caller owns it now
+    i0, j0 = table.site_origin
+    inv_b = table.inverse_basis_m
+    # Relative lattice coordinates of output pixel (0, 0) and per column / row step.
+    origin = inv_b @ np.array([grid.x0_m, grid.y0_m]) - np.array([i0, j0], dtype=np.float64)
+    d_col = inv_b @ np.array([grid.step_m, 0.0])
+    d_row = inv_b @ np.array([0.0, grid.step_m])
+    kern.interpolate_to_grid(acc, scale, n_cols, n_rows, table.site_col_offset, origin, d_col, d_row, out)
+    table._scratch[key] = acc
+    return out
 
 
 def _resolve_method(method: str, table: LightFieldTable, grid: ImageGrid) -> str:
@@ -341,9 +347,10 @@ def normalisation(table: LightFieldTable, alphas: np.ndarray, *, method: str = D
 
     Returns
     -------
-    ndarray of shape (n_targets, n_alpha), float32
+    ndarray, float32
         ``1 / sum(b * weight)`` over all samples (or those in ``keep``); 0 where a target could
-        receive less than ``min_coverage`` times the median of those that receive any.
+        receive less than ``min_coverage`` times the median of those that receive any. Shape
+        (n_alpha, grid.height, grid.width) for "bilinear", (n_sites, n_alpha) for "triangles".
     """
     grid = table.grid if grid is None else grid
     method = _resolve_method(method, table, grid)
@@ -355,16 +362,22 @@ def normalisation(table: LightFieldTable, alphas: np.ndarray, *, method: str = D
         table._normalisations[key] = cached      # most recently used last
         return cached
     ids = np.arange(table.n_samples, dtype=np.int32) if keep is None else np.flatnonzero(keep).astype(np.int32)
-    den = _splat(table, ids, table.weight[ids], coeffs, method, grid)
+    if method == "bilinear":
+        den = np.empty((coeffs.size, grid.height, grid.width), dtype=np.float32)
+        _refocus_into(table, ids, table.weight[ids], coeffs, method, grid, None, den)
+        per_alpha = den.reshape(coeffs.size, -1)          # one row per alpha
+    else:
+        den = _refocus_into(table, ids, table.weight[ids], coeffs, method, grid, None, None)
+        per_alpha = den.T                                 # view: one row per alpha
     inv = np.zeros_like(den)
+    inv_per_alpha = inv.reshape(coeffs.size, -1) if method == "bilinear" else inv.T
     for a in range(coeffs.size):
-        d = den[:, a]
+        d = per_alpha[a]
         positive = d[d > 0]
         if positive.size == 0:
             continue
         enough = d >= min_coverage * float(np.median(positive))
-        inv[enough, a] = 1.0 / d[enough]
-    _release(table, den)
+        inv_per_alpha[a, enough] = 1.0 / d[enough]
     # A service asked for many alpha ranges must not grow without bound (about 20 MB each).
     while len(table._normalisations) >= MAX_NORMALISATIONS:
         table._normalisations.pop(next(iter(table._normalisations)))
@@ -390,23 +403,6 @@ def _sub_normalisation(table: LightFieldTable, fraction: float, method: str, gri
                        min_coverage: float) -> np.ndarray:
     return normalisation(table, np.ones(1), method=method, grid=grid, keep=_central_samples(table, fraction),
                          key_extra=b"sub" + np.float64(fraction).tobytes(), min_coverage=min_coverage)
-
-
-def _to_grid(table: LightFieldTable, sums: np.ndarray, inv: np.ndarray, method: str, grid: ImageGrid,
-             out: np.ndarray) -> np.ndarray:
-    """Normalised sums as images on ``grid``: interpolated from the sites, or just scaled."""
-    if method == "bilinear":
-        kern.scale_to_slices(sums, inv, out)
-        return out
-    n_rows, n_cols = table.site_shape
-    i0, j0 = table.site_origin
-    inv_b = table.inverse_basis_m
-    # Relative lattice coordinates of output pixel (0, 0) and per column / row step.
-    origin = inv_b @ np.array([grid.x0_m, grid.y0_m]) - np.array([i0, j0], dtype=np.float64)
-    d_col = inv_b @ np.array([grid.step_m, 0.0])
-    d_row = inv_b @ np.array([0.0, grid.step_m])
-    kern.interpolate_to_grid(sums, inv, n_cols, n_rows, table.site_col_offset, origin, d_col, d_row, out)
-    return out
 
 
 def refocus_stack(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray | None = None, *,
@@ -476,10 +472,7 @@ def refocus_stack(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray 
         samples = select_samples(image, table, black_level=black_level, background=background,
                                  noise_sigmas=noise_sigmas)
     inv = normalisation(table, alphas, method=method, grid=grid, min_coverage=min_coverage)
-    sums = _splat(table, samples.ids, samples.values, coeffs, method, grid)
-    _to_grid(table, sums, inv, method, grid, out)
-    _release(table, sums)
-    return out
+    return _refocus_into(table, samples.ids, samples.values, coeffs, method, grid, inv, out)
 
 
 def subaperture_image(image: np.ndarray, table: LightFieldTable, *, fraction: float = 0.3,
@@ -528,10 +521,9 @@ def subaperture_image(image: np.ndarray, table: LightFieldTable, *, fraction: fl
     central = _central_samples(table, fraction)
     inv = _sub_normalisation(table, fraction, method, grid, min_coverage)
     chosen = central[samples.ids]
-    sums = _splat(table, samples.ids[chosen], samples.values[chosen], _coeffs(np.ones(1)), method, grid)
     out = np.empty((1, grid.height, grid.width), dtype=np.float32)
-    img = _to_grid(table, sums, inv, method, grid, out)[0]
-    _release(table, sums)
+    img = _refocus_into(table, samples.ids[chosen], samples.values[chosen], _coeffs(np.ones(1)), method, grid,
+                        inv, out)[0]
     if blur_sigma_px > 0:
         img = _gaussian_blur(img, blur_sigma_px)
     np.maximum(img, 0.0, out=img)
@@ -554,8 +546,10 @@ def _central_samples(table: LightFieldTable, fraction: float) -> np.ndarray:
     key = ("central", float(fraction))
     mask = table._scratch.get(key)
     if mask is None:
-        r_max = fraction * table.aperture_radius_m
-        mask = (table.u_m.astype(np.float64) ** 2 + table.v_m.astype(np.float64) ** 2) <= r_max * r_max
+        r_max = np.float32(fraction * table.aperture_radius_m)
+        r2 = table.u_m * table.u_m          # float32 temporaries: the mask needs no more
+        r2 += table.v_m * table.v_m
+        mask = r2 <= r_max * r_max
         table._scratch[key] = mask
     return mask
 

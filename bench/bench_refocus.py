@@ -157,51 +157,41 @@ def worker(folder: Path, repeats: int, naive: bool) -> None:
 
 
 def naive_dense(raw: np.ndarray, table, alphas: np.ndarray) -> float:
-    """A naive numba splat: one slice at a time, every sample, serial; same normalisation."""
+    """A naive numba splat: one slice at a time, every sample, serial, bilinear onto the grid,
+    normalised the same way."""
     from numba import njit
 
-    from analysis import refocus as rf
-
     @njit(cache=False)
-    def one_slice(flat, pix, lens, site, u, v, w, inv_b, coeff, black, n_cols, n_rows, col_offset, num, den):
+    def one_slice(flat, pix, lens, lens_px, u, v, w, inv_step, coeff, black, width, height, num, den):
         for k in range(pix.size):
-            fi = site[lens[k], 0] + (inv_b[0, 0] * u[k] + inv_b[0, 1] * v[k]) * coeff
-            fj = site[lens[k], 1] + (inv_b[1, 0] * u[k] + inv_b[1, 1] * v[k]) * coeff
-            i0 = int(np.floor(fi))
-            j0 = int(np.floor(fj))
-            col = i0 + (j0 >> 1) + col_offset
-            if j0 < 0 or j0 + 1 >= n_rows or col < 0 or col + 2 >= n_cols:
+            fc = lens_px[lens[k], 0] + u[k] * inv_step * coeff
+            fr = lens_px[lens[k], 1] + v[k] * inv_step * coeff
+            c0 = int(np.floor(fc))
+            r0 = int(np.floor(fr))
+            if c0 < 0 or r0 < 0 or c0 + 1 >= width or r0 + 1 >= height:
                 continue
-            a = fi - i0
-            b = fj - j0
+            a = fc - c0
+            b = fr - r0
             val = flat[pix[k]] - black
-            s = j0 * n_cols + col
-            up = n_cols + (j0 & 1)
-            if a + b < 1:
-                corners = ((s, 1 - a - b), (s + 1, a), (s + up, b))
-            else:
-                corners = ((s + up + 1, a + b - 1), (s + 1, 1 - b), (s + up, 1 - a))
-            for c, wt in corners:
-                num[c] += wt * val
-                den[c] += wt * w[k]
+            for dc, dr, wt in ((0, 0, (1 - a) * (1 - b)), (1, 0, a * (1 - b)), (0, 1, (1 - a) * b), (1, 1, a * b)):
+                num[r0 + dr, c0 + dc] += wt * val
+                den[r0 + dr, c0 + dc] += wt * w[k]
 
-    n_rows, n_cols = table.site_shape
-    n_sites = n_rows * n_cols
-    flat = raw.reshape(-1)
     grid = table.grid
-    out = np.empty((1, grid.height, grid.width), np.float32)
-    args = (flat, table.pixel_index, table.lens, table.lens_site, table.u_m, table.v_m, table.weight,
-            table.inverse_basis_m)
-    shape = (n_cols, n_rows, table.site_col_offset)
-    one_slice(*args, 0.0, float(table.black_level), *shape,
-              np.zeros(n_sites, np.float32), np.zeros(n_sites, np.float32))  # compile
+    col, row = grid.to_pixels(table.lens_xy_m[:, 0], table.lens_xy_m[:, 1])
+    lens_px = np.stack([col, row], axis=1).astype(np.float32)
+    flat = raw.reshape(-1)
+    out = np.empty((len(alphas), grid.height, grid.width), np.float32)
+    args = (flat, table.pixel_index, table.lens, lens_px, table.u_m, table.v_m, table.weight, 1.0 / grid.step_m)
+    shape = (grid.height, grid.width)
+    one_slice(*args, 0.0, float(table.black_level), grid.width, grid.height,
+              np.zeros(shape, np.float32), np.zeros(shape, np.float32))  # compile
     t0 = time.perf_counter()
-    for alpha in alphas:
-        num = np.zeros(n_sites, np.float32)
-        den = np.zeros(n_sites, np.float32)
-        one_slice(*args, 1.0 / alpha - 1.0, float(table.black_level), *shape, num, den)
-        inv = np.where(den > 0, 1.0 / np.maximum(den, 1e-30), 0).astype(np.float32)
-        rf._to_grid(table, num[:, None], inv[:, None], "triangles", grid, out)
+    for a, alpha in enumerate(alphas):
+        num = np.zeros(shape, np.float32)
+        den = np.zeros(shape, np.float32)
+        one_slice(*args, 1.0 / alpha - 1.0, float(table.black_level), grid.width, grid.height, num, den)
+        np.divide(num, den, out=out[a], where=den > 0)
     return time.perf_counter() - t0
 
 
