@@ -28,7 +28,7 @@ from .errors import CalibrationError, ParameterError
 from .image_grid import ImageGrid
 
 # Bump when the saved layout changes, so stale caches are rebuilt, not misread.
-TABLE_FORMAT_VERSION = 3
+TABLE_FORMAT_VERSION = 4
 
 # Empty lens sites kept around the lattice so that shifted samples near the edge still land
 # on the site grid (the simulated f/2 camera shifts by up to about 4 lenses over 0.987 ... 1.013).
