@@ -35,8 +35,8 @@ class ServiceState:
     watcher: Any = None          # service.watcher.CameraWatcher when a camera is configured
     started_at: float = 0.0
     executor_error: str | None = None
-    # Uploads decoded at once (each full F01 frame takes ~60 MB while it is checked).
-    upload_slots: asyncio.Semaphore = field(default_factory=lambda: asyncio.Semaphore(2))
+    # Uploads read and decoded at once (a full F01 frame takes ~100 MB while it is checked).
+    upload_slots: asyncio.Semaphore = field(default_factory=lambda: asyncio.Semaphore(3))
 
     @property
     def current_run(self) -> str:

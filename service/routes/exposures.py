@@ -87,9 +87,11 @@ async def upload_exposure(
         serial: Annotated[str | None, Query(max_length=64, pattern=r"^[A-Za-z0-9_-]+$",
                                             description="camera serial, if the metadata lacks it")] = None,
 ) -> JSONResponse:
-    files = await _read_upload(request)
     run_name = run or state.current_run
-    async with state.upload_slots:  # bounds the memory of many uploads at once
+    # Bodies are read and decoded a few at a time: many uploads at once wait here (in TCP
+    # back-pressure) instead of each holding ~100 MB of the server's memory.
+    async with state.upload_slots:
+        files = await _read_upload(request)
         try:
             exposure = await asyncio.to_thread(parse_exposure, files)
         except NotAnExposure as exc:
