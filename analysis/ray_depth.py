@@ -188,7 +188,8 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
              alpha0: np.ndarray, *, background: float, aperture_per_lens_plane: float, alpha_half_range: float = 0.004, n_alpha: int = 33,
              lateral_half_range_pitches: float = 0.4, reach_pitches: float = 1.2, blur_px: float = 0.5,
              temperature: float = 1.0, fine: tuple[int, float, int, int] = (9, 0.25, 3, 2),
-             subtract: np.ndarray | None = None, coarse_points: int = 1, coarse_lateral: int = 3) -> RayFit:
+             subtract: np.ndarray | None = None, coarse_points: int = 1, coarse_lateral: int = 3,
+             prior_sigma: float | None = None) -> RayFit:
     """Refine position and depth of particles by fitting the forward model to the raw samples.
 
     Two passes: a coarse grid of ``n_alpha`` depths over ``alpha0 +- alpha_half_range`` and 3 x 3
@@ -226,6 +227,10 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
         Cost difference, in mismatched pixels, over which candidates lose weight by ``1/e``.
     fine : (n_alpha, lateral_half_range_pitches, n_lateral, pixel_points_per_side)
         The fine pass's grid.
+    prior_sigma : float, optional
+        Weigh candidates by a Gaussian of this width (in ``c``, about alpha) around the start:
+        where the pixels cannot tell the depth (one lens holds all the light, either sign of the
+        defocus fits), the start decides.
     subtract : ndarray of shape (table.n_samples,), optional
         Light already explained (devignetted DN per sample, from :func:`render_fits`), taken off
         before fitting: particles hidden behind others are then fitted to what is left.
@@ -257,7 +262,7 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
              idx.neighbours * aperture_per_lens_plane, idx.neighbours,
              _pixel_footprint(coarse_points, blur_px) * idx.u_per_px, _pixel_footprint(int(fine[3]), blur_px) * idx.u_per_px,
              table.aperture_radius_m ** 2 * (1 + 1e-9), float(temperature), int(fine[0]), float(fine[1]), int(fine[2]),
-             int(coarse_lateral), out)
+             int(coarse_lateral), 0.0 if not prior_sigma else 0.5 / prior_sigma ** 2, out)
     return RayFit(sx_m=out[:, 0], sy_m=out[:, 1], alpha=1.0 / (1.0 - out[:, 2]), intensity=out[:, 3],
                   n_lit=out[:, 4].astype(np.int64), residual=out[:, 5],
                   alpha_spread=out[:, 6] / (1.0 - out[:, 2]) ** 2)
@@ -266,15 +271,16 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
 @numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
 def _fit_all(centres, sample_ptr, lens_ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, pitch, normals,
              half_sq, neigh_u, neigh_s, sub_coarse, sub_fine, r_ap2, temperature, n_c_fine, fine_lat, n_lat_fine,
-             n_lat_coarse, out):
+             n_lat_coarse, prior_k, out):
     # One particle per prange iteration; each writes only its own row of `out`.
     for p in prange(sx0.size):
         la, lb = lens_ptr[p], lens_ptr[p + 1]
         cen = centres[la:lb]
         ptr = sample_ptr[la:lb + 1]
         coarse = np.empty(7)
+        c_prior = 0.5 * (c_lo[p] + c_hi[p])
         _fit_one(cen, ptr, uv, values, sx0[p], sy0[p], c_lo[p], c_hi[p], n_c, half_lat, n_lat_coarse, pitch,
-                 normals, half_sq, neigh_u, neigh_s, sub_coarse, r_ap2, temperature, coarse)
+                 normals, half_sq, neigh_u, neigh_s, sub_coarse, r_ap2, temperature, c_prior, prior_k, coarse)
         if coarse[3] <= 0.0:
             out[p, :] = coarse
             continue
@@ -282,12 +288,12 @@ def _fit_all(centres, sample_ptr, lens_ptr, uv, values, sx0, sy0, c_lo, c_hi, n_
         half_c = max(2.0 * coarse[6], 1.5 * step)
         _fit_one(cen, ptr, uv, values, coarse[0], coarse[1], coarse[2] - half_c, coarse[2] + half_c,
                  n_c_fine, fine_lat * pitch, n_lat_fine, pitch, normals, half_sq, neigh_u, neigh_s, sub_fine, r_ap2,
-                 temperature, out[p])
+                 temperature, c_prior, prior_k, out[p])
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
 def _fit_one(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, n_lat, pitch, normals, half_sq,
-             neigh_u, neigh_s, sub, r_ap2, temperature, out):
+             neigh_u, neigh_s, sub, r_ap2, temperature, c_prior, prior_k, out):
     """Grid of (c, s) candidates over the lenses ``centres`` (samples ``ptr[l]:ptr[l+1]`` each);
     writes mean s_x, s_y, c, best I0, lit samples, residual, std of c."""
     n_sub = sub.shape[0]
@@ -364,7 +370,8 @@ def _fit_one(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, n_la
     mc = 0.0
     mc2 = 0.0
     for k in range(n_cand):
-        w = np.exp(-(costs[k] - costs[best]) / scale)
+        dc = cand[k, 2] - c_prior
+        w = np.exp(-(costs[k] - costs[best]) / scale - prior_k * dc * dc)
         wsum += w
         mx += w * cand[k, 0]
         my += w * cand[k, 1]
