@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -26,6 +25,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from _common import best_time, peak_rss_mb  # noqa: E402
 os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".cache" / "numba"))
 
 from analysis.calibration import calibrate, load_calibration, read_calibration, cache_path  # noqa: E402
@@ -41,14 +42,6 @@ SERIAL = "A202160042"
 PLENOPTICAM_S = 120.0
 
 
-def best(fn, repeat: int) -> float:
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return min(times)
-
 
 def prepare(folder: Path) -> Lattice:
     meta = simulated_camera_metadata(size=SIZE)
@@ -63,17 +56,6 @@ def prepare(folder: Path) -> Lattice:
     return truth
 
 
-def peak_rss_mib() -> float:
-    """Peak resident memory of this process image (VmHWM; unlike ru_maxrss, not inherited
-    from the parent across fork and exec)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
 
 def centre_error(fitted: Lattice, truth: Lattice) -> float:
     ij, xy = truth.centres(SIZE, SIZE)
@@ -86,7 +68,7 @@ def measure(folder: Path, truth: Lattice) -> None:
 
     from analysis.lattice_fit import _demodulate, balance_channels, lens_centroids
 
-    rss_imports = peak_rss_mib()
+    rss_imports = peak_rss_mb()
     meta = simulated_camera_metadata(size=SIZE)
     white = next(w for w in load_white_images(folder) if w.name == "MOD_0002")
     raw = white.image()
@@ -96,13 +78,13 @@ def measure(folder: Path, truth: Lattice) -> None:
     t0 = time.perf_counter()
     fit = fit_lattice(raw, seed)
     first = time.perf_counter() - t0
-    t_fit = best(lambda: fit_lattice(raw, seed), 3)
-    t_cal = best(lambda: calibrate(white), 3)
-    t_decode = best(lambda: white.image(), 3)
+    t_fit = best_time(lambda: fit_lattice(raw, seed), 3)
+    t_cal = best_time(lambda: calibrate(white), 3)
+    t_decode = best_time(lambda: white.image(), 3)
     image = balance_channels(raw, black_level=168.0)
-    t_balance = best(lambda: balance_channels(raw, black_level=168.0), 3)
-    t_demod = best(lambda: _demodulate(image, seed), 3)
-    t_centroids = best(lambda: lens_centroids(image, fit.lattice), 3)
+    t_balance = best_time(lambda: balance_channels(raw, black_level=168.0), 3)
+    t_demod = best_time(lambda: _demodulate(image, seed), 3)
+    t_centroids = best_time(lambda: lens_centroids(image, fit.lattice), 3)
 
     tracemalloc.start()
     cal = calibrate(white)
@@ -114,11 +96,11 @@ def measure(folder: Path, truth: Lattice) -> None:
         t0 = time.perf_counter()
         load_calibration(folder, meta, serial=SERIAL, cache_dir=cache)
         t_miss = time.perf_counter() - t0
-        t_hit = best(lambda: load_calibration(folder, meta, serial=SERIAL, cache_dir=cache), 5)
+        t_hit = best_time(lambda: load_calibration(folder, meta, serial=SERIAL, cache_dir=cache), 5)
         path = cache_path(cache, SERIAL, cal.white_sha1)
-        t_read = best(lambda: read_calibration(path), 5)
+        t_read = best_time(lambda: read_calibration(path), 5)
         size_mib = path.stat().st_size / 2**20
-    rss_mib = peak_rss_mib()
+    rss_mib = peak_rss_mb()
 
     print(f"numba threads                      {numba.get_num_threads()}")
     print(f"fit_lattice, first call            {first:7.3f} s   (numba cache load or compile)")

@@ -13,7 +13,6 @@ import hashlib
 import json
 import sys
 import tempfile
-import time
 import tracemalloc
 from pathlib import Path
 
@@ -22,22 +21,16 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _common import best_time  # noqa: E402
+
 from analysis.exposure import (  # noqa: E402
     Exposure, exposure_from_lfp_bytes, lfp_bytes, read_exposure, write_lfp, write_raw_pair)
 from analysis.file_report import inspect_file  # noqa: E402
 from analysis.lfp import read_container  # noqa: E402
 from analysis.raw12 import pack12, unpack12  # noqa: E402
 
-REPEAT = 5
 
 
-def best(fn, repeat: int = REPEAT) -> float:
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return min(times)
 
 
 def peak_mib(fn) -> float:
@@ -54,7 +47,7 @@ def main() -> None:
     exp = Exposure(image=image, metadata=meta, private_metadata={"camera": {"serialNumber": "A0"}})
     raw = pack12(image)
     blob = lfp_bytes(exp)
-    base = best(lambda: hashlib.sha1(raw).digest())
+    base = best_time(lambda: hashlib.sha1(raw).digest())
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         lfp_path = write_lfp(exp, tmp / "IMG_0001.lfp")
@@ -73,7 +66,7 @@ def main() -> None:
         print(f"baseline: one SHA-1 of 16 MB = {base * 1e3:.1f} ms")
         print(f"{'operation':34s} {'ms':>8s} {'x SHA-1':>8s} {'peak MiB':>9s}")
         for name, fn in cases.items():
-            t = best(fn)
+            t = best_time(fn)
             print(f"{name:34s} {t * 1e3:8.1f} {t / base:8.1f} {peak_mib(fn):9.1f}")
 
 

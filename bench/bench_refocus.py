@@ -19,6 +19,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from _common import peak_rss_mb  # noqa: E402
 os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".cache" / "numba"))
 
 import numpy as np  # noqa: E402
@@ -31,14 +33,6 @@ def _rss_mb() -> float:
                 return int(line.split()[1]) / 1024
     return float("nan")
 
-
-def _peak_rss_mb() -> float:
-    """VmHWM: this process's peak resident memory (ru_maxrss would include the parent's)."""
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024
-    return float("nan")
 
 
 def _timed(fn, repeats: int) -> tuple[float, object]:
@@ -140,7 +134,7 @@ def worker(folder: Path, repeats: int, naive: bool) -> None:
     print(f"the four in a row:   {t_chain * 1e3:8.1f} ms  (as the pipeline calls them; "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}, threading layer "
           f"{numba.threading_layer()})")
-    print(f"peak RSS:            {_peak_rss_mb():8.0f} MB  (whole process; budget 600 MB for the pipeline)")
+    print(f"peak RSS:            {peak_rss_mb():8.0f} MB  (whole process; budget 600 MB for the pipeline)")
     for method in ("triangles", "bilinear"):
         t_m, _ = _timed(lambda: rf.refocus_stack(raw, table, alphas, samples=samples, method=method, out=stack),
                         repeats)

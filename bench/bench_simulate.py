@@ -8,27 +8,19 @@ white images, all files), plus the process's peak resident memory.
 from __future__ import annotations
 
 import argparse
-import resource
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from _common import best_time, peak_rss_mb  # noqa: E402
 
 from analysis.camera_model import CameraModel  # noqa: E402
 from analysis.scenarios import SCENARIO_NAMES, make_scenario  # noqa: E402
 from analysis.sim_camera import simulated_camera_metadata  # noqa: E402
 from analysis.simulate import accumulate_particles, render_exposure, render_white_image, write_scenario  # noqa: E402
 
-
-def best_of(repeat: int, fn) -> float:
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return min(times)
 
 
 def main() -> None:
@@ -37,19 +29,19 @@ def main() -> None:
     args = parser.parse_args()
     model = CameraModel.from_metadata(simulated_camera_metadata())
     render_white_image(model, seed=0)  # compile / warm the numba kernel
-    print(f"full-size white image: {best_of(args.repeat, lambda: render_white_image(model, seed=1)):.2f} s")
+    print(f"full-size white image: {best_time(lambda: render_white_image(model, seed=1), args.repeat):.2f} s")
     import numpy as np
     for name in SCENARIO_NAMES:
         s = make_scenario(name, 1)
-        rays = best_of(args.repeat, lambda: accumulate_particles(model, s.particles, rng=np.random.default_rng(0)))
-        full = best_of(args.repeat, lambda: render_exposure(model, s.particles, seed=1,
-                                                           background_dn=s.background_dn))
+        rays = best_time(lambda: accumulate_particles(model, s.particles, rng=np.random.default_rng(0)), args.repeat)
+        full = best_time(lambda: render_exposure(model, s.particles, seed=1,
+                                                           background_dn=s.background_dn), args.repeat)
         print(f"{name:13s} {len(s.particles):4d} particles: ray tracing {rays:.2f} s, "
               f"full exposure (glow, blur, noise) {full:.2f} s")
     with tempfile.TemporaryDirectory() as tmp:
-        t = best_of(1, lambda: write_scenario(Path(tmp) / "run", "tilted-layer", 1))
+        t = best_time(lambda: write_scenario(Path(tmp) / "run", "tilted-layer", 1), 1)
         print(f"write_scenario full size (1 exposure + 5 white images, all files): {t:.2f} s")
-    peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    peak_mib = peak_rss_mb()
     print(f"peak resident memory: {peak_mib:.0f} MiB")
 
 

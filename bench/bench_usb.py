@@ -33,6 +33,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _common import best_time  # noqa: E402
+
 import driver  # noqa: E402
 from driver import protocol as p  # noqa: E402
 from driver.simulated_usb import SimulatedBackend  # noqa: E402
@@ -42,15 +44,6 @@ CAMERA_PATH = "I:\\DCIM\\100PHOTO\\IMG_0001.RAW"
 REPEAT = 11
 CHUNKS = (32 * 1024, 64 * 1024, 256 * 1024, 1024 * 1024, 2 * 1024 * 1024)
 
-
-def best(fn, repeat: int = REPEAT) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return min(times)
 
 
 def chunked_copy(src: bytes, chunk: int, transfer: array.array) -> bytes:
@@ -90,7 +83,7 @@ def main() -> None:
         mb = RAW_BYTES / 1e6
 
         source = bytearray(raw)
-        t_memcpy = best(lambda: bytes(source))
+        t_memcpy = best_time(lambda: bytes(source), warmup=True)
         print(f"16 MB F01 raw ({RAW_BYTES} bytes), best of {REPEAT}")
         print(f"memcpy                 {t_memcpy * 1e3:8.2f} ms  {mb / t_memcpy:8.0f} MB/s  (into re-used memory; "
               "a transfer's result is fresh memory, whose page faults dominate the copies below)")

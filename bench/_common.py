@@ -1,0 +1,34 @@
+"""Helpers the benchmark scripts share: best-of timing and peak memory."""
+
+from __future__ import annotations
+
+import resource
+import time
+from pathlib import Path
+from typing import Callable
+
+
+def best_time(fn: Callable[[], object], repeat: int = 5, *, warmup: bool = False) -> float:
+    """Fastest wall time in seconds of ``repeat`` calls (after one untimed call if ``warmup``)."""
+    if warmup:
+        fn()
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def peak_rss_mb(pid: int | str = "self") -> float:
+    """Peak resident memory in MiB of a process (VmHWM: unlike ru_maxrss, a child's figure is its
+    own and not inherited from the parent across fork and exec)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    if pid != "self":
+        return float("nan")
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
