@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import multiprocessing
+import os
 import queue as queue_mod
 import threading
 import uuid
@@ -50,9 +51,13 @@ class Executor(Protocol):
 _progress_queue: multiprocessing.Queue | None = None
 
 
-def _init_worker(progress_queue: multiprocessing.Queue, do_warm: bool) -> None:
+def _init_worker(progress_queue: multiprocessing.Queue, do_warm: bool, threads: int) -> None:
     global _progress_queue
     _progress_queue = progress_queue
+    # Share the cores between the pool's processes instead of each numba kernel using all.
+    import numba
+
+    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
     if do_warm:
         warm_up()
 
@@ -68,7 +73,6 @@ def _pool_run(task: JobTask, key: str) -> JobOutput:
 
 
 def _pool_ping() -> int:
-    import os
     return os.getpid()
 
 
@@ -96,8 +100,9 @@ class LocalPoolExecutor:
         return self._warm
 
     def _new_pool(self) -> ProcessPoolExecutor:
+        threads = max(1, (os.cpu_count() or 1) // self.workers)
         return ProcessPoolExecutor(self.workers, mp_context=self._ctx, initializer=_init_worker,
-                                   initargs=(self._progress_queue, self.do_warm))
+                                   initargs=(self._progress_queue, self.do_warm, threads))
 
     async def start(self) -> None:
         if self._pool is not None:  # a start that failed before: begin again with a fresh pool

@@ -13,6 +13,7 @@ from fastapi import Request
 from fastapi.responses import JSONResponse, Response
 
 from service.problems import Problem
+from service.store import nx_group, write_table
 
 TableFormat = Literal["json", "csv", "h5"]
 MEDIA_TYPES = {"json": "application/json", "csv": "text/csv; charset=utf-8", "h5": "application/x-hdf5"}
@@ -76,8 +77,6 @@ def table_csv(columns: dict[str, np.ndarray]) -> str:
 
 def table_h5(columns: dict[str, np.ndarray], *, title: str) -> bytes:
     """A small NeXus file (``/entry/data``) holding just the table."""
-    from service.store import nx_group, write_table
-
     buf = io.BytesIO()
     with h5py.File(buf, "w") as f:
         f.attrs["default"] = "entry"
