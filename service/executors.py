@@ -13,6 +13,7 @@ import multiprocessing
 import os
 import queue as queue_mod
 import threading
+import time
 import uuid
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -51,9 +52,18 @@ class Executor(Protocol):
 _progress_queue: multiprocessing.Queue | None = None
 
 
+def _exit_with_parent(parent: int) -> None:
+    # A server killed with SIGKILL cannot stop its pool; its workers would live on as orphans
+    # holding a gigabyte each. The job they were on is re-queued by the next server.
+    while os.getppid() == parent:
+        time.sleep(1.0)
+    os._exit(1)
+
+
 def _init_worker(progress_queue: multiprocessing.Queue, do_warm: bool, threads: int) -> None:
     global _progress_queue
     _progress_queue = progress_queue
+    threading.Thread(target=_exit_with_parent, args=(os.getppid(),), name="parent-watch", daemon=True).start()
     # Share the cores between the pool's processes instead of each numba kernel using all.
     import numba
 
