@@ -69,11 +69,20 @@ class ServiceProcess:
             time.sleep(0.2)
         raise TimeoutError("service never became ready:\n" + "".join(self.lines[-30:]))
 
-    def kill(self) -> None:
-        """SIGKILL the service and its workers at once, as a power cut or OOM kill would."""
-        os.killpg(self.proc.pid, signal.SIGKILL)
+    def kill(self, *, group: bool = False) -> None:
+        """SIGKILL the server process (``group``: and its workers at once, as a power cut would)."""
+        if group:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        else:
+            os.kill(self.proc.pid, signal.SIGKILL)
         self.proc.wait(timeout=30)
-        self._reader.join(timeout=5)
+
+    def children(self) -> list[int]:
+        """Process ids of the server's children (pool workers, resource tracker)."""
+        found = []
+        for task in Path(f"/proc/{self.proc.pid}/task").iterdir():
+            found += [int(c) for c in (task / "children").read_text().split()]
+        return found
 
     def stop(self) -> None:
         if self.proc.poll() is None:

@@ -174,7 +174,12 @@ def test_sigkill_mid_job_and_restart_finishes_every_exposure_exactly_once(tmp_pa
             assert time.monotonic() < deadline, "no job ever ran"
             time.sleep(0.05)
         interrupted = running[0]["id"]
-        first.kill()
+        workers = first.children()
+        first.kill()  # the server only: its pool workers must notice and go
+        deadline = time.monotonic() + 15
+        while any(Path(f"/proc/{pid}").exists() for pid in workers):
+            assert time.monotonic() < deadline, "worker processes outlived their server"
+            time.sleep(0.1)
     finally:
         first.stop()
 
@@ -203,14 +208,6 @@ def test_sigkill_mid_job_and_restart_finishes_every_exposure_exactly_once(tmp_pa
     assert [int(np.sum(frames == a["frame"])) for a in accepted] == [counts[a["exposure_id"]] for a in accepted]
 
 
-def _children(pid: int) -> list[int]:
-    found = []
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        children = (task / "children").read_text().split()
-        found.extend(int(c) for c in children)
-    return found
-
-
 def test_a_dead_worker_process_is_replaced_and_its_job_runs_again(tmp_path: Path, sim) -> None:
     env = {"PLENODUST_PIPELINE": json.dumps({"n_slices": 1000})}
     server = ServiceProcess(tmp_path / "data", env=env)
@@ -224,7 +221,7 @@ def test_a_dead_worker_process_is_replaced_and_its_job_runs_again(tmp_path: Path
         while httpx.get(server.url + f"/api/v1/jobs/{job_id}").json()["state"] != "running":
             assert time.monotonic() < deadline
             time.sleep(0.02)
-        workers = [pid for pid in _children(server.proc.pid)
+        workers = [pid for pid in server.children()
                    if b"resource_tracker" not in Path(f"/proc/{pid}/cmdline").read_bytes()]
         assert len(workers) == 1
         os.kill(workers[0], signal.SIGKILL)  # as the kernel's OOM killer would
