@@ -53,7 +53,7 @@ def _params(parameters: dict | None):
     return PipelineParams.from_dict(parameters) if parameters else PipelineParams()
 
 
-def _view_slices(stack: np.ndarray, alphas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _view_slices(stack: np.ndarray, alphas: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     # A few slices, shrunk and scaled to 8 bits with one common scale so brightness
     # compares between slices.
     step = max(1, int(np.ceil(stack.shape[0] / MAX_VIEW_SLICES)))
@@ -65,7 +65,7 @@ def _view_slices(stack: np.ndarray, alphas: np.ndarray) -> tuple[np.ndarray, np.
         sub = sub[:, :h, :w].reshape(sub.shape[0], h // shrink, shrink, w // shrink, shrink).mean(axis=(2, 4))
     top = float(np.percentile(sub, 99.9)) if sub.size else 0.0
     scaled = np.clip(sub / top * 255.0, 0, 255) if top > 0 else np.zeros_like(sub)
-    return scaled.astype(np.uint8), np.asarray(alphas, dtype=np.float64)[picked]
+    return scaled.astype(np.uint8), np.asarray(alphas, dtype=np.float64)[picked], shrink
 
 
 def run_task(task: JobTask, progress: Callable[[float], None] | None = None) -> JobOutput:
@@ -95,7 +95,8 @@ def run_task(task: JobTask, progress: Callable[[float], None] | None = None) -> 
         output.curves = np.asarray(result.curves, dtype=np.float32)
         output.curve_alpha = np.asarray(result.alphas, dtype=np.float64)
     if task.keep_slices and result.stack is not None:
-        output.slices, output.slice_alpha = _view_slices(np.asarray(result.stack), np.asarray(result.alphas))
+        output.slices, output.slice_alpha, output.slice_binning = _view_slices(np.asarray(result.stack),
+                                                                               np.asarray(result.alphas))
     output.seconds = time.perf_counter() - start
     return output
 

@@ -53,6 +53,8 @@ class JobOutput:
         Refocused slices scaled to 8 bits for viewing.
     slice_alpha : ndarray of shape (K,) or None
         The ``alpha`` of each kept slice.
+    slice_binning : int
+        Output-image pixels per slice pixel along each axis (slices are shrunk for viewing).
     seconds : float
         Time the worker spent on the job.
     """
@@ -63,6 +65,7 @@ class JobOutput:
     curves: np.ndarray | None = None
     slices: np.ndarray | None = None
     slice_alpha: np.ndarray | None = None
+    slice_binning: int = 1
     seconds: float = 0.0
     extra: dict = field(default_factory=dict)
 

@@ -141,6 +141,7 @@ class Store:
                     slices = nx_group(entry, "slices", "NXdata")
                     slices.attrs["signal"] = "image"
                     slices.attrs["axes"] = ["alpha", ".", "."]
+                    slices.attrs["binning"] = int(output.slice_binning)
                     slices.create_dataset("image", data=np.asarray(output.slices, dtype=np.uint8),
                                           chunks=(1, *output.slices.shape[1:]), compression="gzip",
                                           compression_opts=1)
@@ -188,12 +189,14 @@ class Store:
         with h5py.File(self.result_path(exposure_id), "r") as f:
             return int(f["entry/slices/image"].shape[0]) if "entry/slices" in f else 0
 
-    def read_slice(self, exposure_id: str, index: int) -> tuple[float, np.ndarray] | None:
-        """``(alpha, image)`` of one kept slice, or None."""
+    def read_slice(self, exposure_id: str, index: int) -> tuple[float, np.ndarray, int] | None:
+        """``(alpha, image, binning)`` of one kept slice, or None; ``binning`` is output-image
+        pixels per slice pixel."""
         with h5py.File(self.result_path(exposure_id), "r") as f:
             if "entry/slices" not in f or not 0 <= index < f["entry/slices/image"].shape[0]:
                 return None
-            return float(f["entry/slices/alpha"][index]), f["entry/slices/image"][index]
+            slices = f["entry/slices"]
+            return float(slices["alpha"][index]), slices["image"][index], int(slices.attrs.get("binning", 1))
 
     # -- run files -------------------------------------------------------------------
 

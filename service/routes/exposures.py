@@ -189,6 +189,8 @@ async def get_slice(exposure_id: str, index: int, state: State) -> Response:
     if found is None:
         raise Problem(404, "No such slice", f"exposure {exposure_id} has no kept slice {index}",
                       kind="no-slice")
-    alpha, image = found
+    alpha, image, binning = found
     ok, png = cv2.imencode(".png", image)
-    return Response(png.tobytes(), media_type="image/png", headers={"X-Alpha": f"{alpha:.6f}"})
+    # X-Binning: particle x, y (output-image pixels) / binning = position in this image.
+    return Response(png.tobytes(), media_type="image/png",
+                    headers={"X-Alpha": f"{alpha:.6f}", "X-Binning": str(binning)})

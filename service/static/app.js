@@ -125,13 +125,34 @@ async function drawSlice() {
   if (!view.exposure || !view.slices) { Plot.message(canvas, "no slices kept"); $("slice-alpha").textContent = ""; return; }
   const r = await fetch(`${API}/exposures/${view.exposure}/slices/${k}`);
   if (!r.ok) { Plot.message(canvas, "slice not available"); return; }
-  $("slice-alpha").textContent = `α = ${(+r.headers.get("X-Alpha")).toFixed(5)} (${k + 1} of ${view.slices})`;
+  const alpha = +r.headers.get("X-Alpha"), binning = +(r.headers.get("X-Binning") || 1);
+  $("slice-alpha").textContent = `α = ${alpha.toFixed(5)} (${k + 1} of ${view.slices})`;
   const bitmap = await createImageBitmap(await r.blob());
   const ctx = canvas.getContext("2d");
   ctx.imageSmoothingEnabled = false;
   ctx.clearRect(0, 0, canvas.width, canvas.height);
   const s = Math.min(canvas.width / bitmap.width, canvas.height / bitmap.height);
   ctx.drawImage(bitmap, 0, 0, bitmap.width * s, bitmap.height * s);
+  drawSliceMarkers(ctx, alpha, binning, s);
+}
+
+// Rings on the particles: bright where this slice is their focus, faint elsewhere.
+function drawSliceMarkers(ctx, alpha, binning, scale) {
+  const t = view.table;
+  if (!t || !t.count || !view.curves) return;
+  const a = view.curves.alpha;
+  const spacing = a.length > 1 ? (a[a.length - 1] - a[0]) / (a.length - 1) * Math.ceil(a.length / view.slices) : 1;
+  const c = t.columns;
+  for (let i = 0; i < t.count; i++) {
+    // x, y are output-image pixels (integers at pixel centres); a slice pixel spans `binning`.
+    const X = ((c.x[i] - (binning - 1) / 2) / binning + 0.5) * scale;
+    const Y = ((c.y[i] - (binning - 1) / 2) / binning + 0.5) * scale;
+    const inFocus = Math.abs(c.alpha[i] - alpha) <= spacing / 2;
+    ctx.beginPath(); ctx.arc(X, Y, inFocus ? 7 : 5, 0, 2 * Math.PI);
+    ctx.strokeStyle = i === view.particle ? "#ffffff" : inFocus ? "#ffd54f" : "rgba(79,195,247,0.35)";
+    ctx.lineWidth = inFocus || i === view.particle ? 2 : 1;
+    ctx.stroke();
+  }
 }
 
 // -- interaction -------------------------------------------------------------------------
@@ -153,9 +174,9 @@ $("top").addEventListener("click", e => {
     const d = (px - x) ** 2 + (py - y) ** 2;
     if (d < dist) { dist = d; best = i; }
   }
-  if (best !== null) { view.particle = best; $("particle").value = String(best); drawAll(); }
+  if (best !== null) { view.particle = best; $("particle").value = String(best); drawAll(); drawSlice(); }
 });
-$("particle").addEventListener("change", e => { view.particle = +e.target.value; drawAll(); });
+$("particle").addEventListener("change", e => { view.particle = +e.target.value; drawAll(); drawSlice(); });
 $("slice").addEventListener("input", drawSlice);
 
 // -- live updates --------------------------------------------------------------------------
