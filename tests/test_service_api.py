@@ -6,13 +6,13 @@ body limit and a simulated camera.
 
 from __future__ import annotations
 
+import io
 import shutil
 import time
 from pathlib import Path
 
 import cv2
 import h5py
-import io
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
