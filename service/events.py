@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import collections
 import itertools
 import threading
 from collections.abc import AsyncIterator
@@ -26,8 +27,10 @@ class EventBus:
     the oldest ones rather than holding memory for ever.
     """
 
-    def __init__(self, *, backlog: int = 1000) -> None:
+    def __init__(self, *, backlog: int = 1000, history: int = 500) -> None:
         self.backlog = backlog
+        # Recent events, replayed to a client that reconnects with Last-Event-ID.
+        self._history: collections.deque[Event] = collections.deque(maxlen=history)
         self._ids = itertools.count(1)
         self._subscribers: set[asyncio.Queue[Event | None]] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -55,16 +58,22 @@ class EventBus:
             loop.call_soon_threadsafe(self._deliver, event)
 
     def _deliver(self, event: Event | None) -> None:
+        if event is not None:
+            self._history.append(event)
         for queue in list(self._subscribers):
             if queue.full():
                 queue.get_nowait()
             queue.put_nowait(event)
 
-    async def subscribe(self) -> AsyncIterator[Event]:
-        """Events from now on, until the bus closes."""
+    async def subscribe(self, *, after: int | None = None) -> AsyncIterator[Event]:
+        """Events from now on, until the bus closes; with ``after``, first the kept events
+        with a larger id (what a reconnecting client missed)."""
         queue: asyncio.Queue[Event | None] = asyncio.Queue(self.backlog)
         self._subscribers.add(queue)
         try:
+            if after is not None:
+                for event in [e for e in self._history if e.id > after]:
+                    yield event
             while not self.closed:
                 event = await queue.get()
                 if event is None:

@@ -60,27 +60,36 @@ def server(tmp_path_factory, sim):
 class EventStream:
     """Reads ``/api/v1/events`` in a thread and keeps what arrives."""
 
-    def __init__(self, url: str) -> None:
+    def __init__(self, url: str, *, last_event_id: int | None = None) -> None:
         self.events: list[tuple[str, dict]] = []
+        self.last_id: int | None = None
         self.connected = threading.Event()
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, args=(url,), daemon=True)
+        headers = {"Last-Event-ID": str(last_event_id)} if last_event_id is not None else {}
+        self._thread = threading.Thread(target=self._run, args=(url, headers), daemon=True)
         self._thread.start()
         assert self.connected.wait(10), "event stream did not open"
 
-    def _run(self, url: str) -> None:
-        with httpx.stream("GET", url + "/api/v1/events", timeout=httpx.Timeout(5, read=None)) as r:
-            assert r.headers["content-type"].startswith("text/event-stream")
-            kind = None
-            for line in r.iter_lines():
-                if line.startswith("event:"):
-                    kind = line.split(":", 1)[1].strip()
-                elif line.startswith("data:") and kind:
-                    self.events.append((kind, json.loads(line.split(":", 1)[1])))
-                    if kind == "hello":
-                        self.connected.set()
-                if self._stop.is_set():
-                    return
+    def _run(self, url: str, headers: dict) -> None:
+        try:
+            with httpx.stream("GET", url + "/api/v1/events", headers=headers,
+                              timeout=httpx.Timeout(5, read=None)) as r:
+                assert r.headers["content-type"].startswith("text/event-stream")
+                kind = None
+                for line in r.iter_lines():
+                    if line.startswith("event:"):
+                        kind = line.split(":", 1)[1].strip()
+                    elif line.startswith("id:"):
+                        self.last_id = int(line.split(":", 1)[1])
+                    elif line.startswith("data:") and kind:
+                        self.events.append((kind, json.loads(line.split(":", 1)[1])))
+                        if kind == "hello":
+                            self.connected.set()
+                    if self._stop.is_set():
+                        return
+        except httpx.TransportError:
+            if not self._stop.is_set():
+                raise  # the stream broke while the test still listened
 
     def wait_for(self, predicate, timeout_s: float = 60.0) -> tuple[str, dict]:
         deadline = time.monotonic() + timeout_s
@@ -111,6 +120,29 @@ def test_upload_over_http_is_processed_matches_truth_and_is_announced(server, si
         stream.close()
     table = httpx.get(server.url + f"/api/v1/exposures/{body['exposure_id']}/particles").json()
     assert_matches_truth(table["columns"], truth_xyz(sim.truth[0]))
+
+
+def test_a_reconnecting_client_gets_the_events_it_missed(server, sim) -> None:
+    first = EventStream(server.url)
+    try:
+        r = httpx.post(server.url + "/api/v1/exposures?run=replay", content=variant_lfp(sim.lfp[0], 900),
+                       headers=OCTET)
+        seen = r.json()["exposure_id"]
+        first.wait_for(lambda kind, data: kind == "result" and data["exposure_id"] == seen)
+        last_id = first.last_id
+    finally:
+        first.close()
+    # While no one listens, another exposure is processed.
+    r = httpx.post(server.url + "/api/v1/exposures?run=replay", content=variant_lfp(sim.lfp[0], 901), headers=OCTET)
+    missed = r.json()
+    wait_for_job(lambda path: httpx.get(server.url + path), missed["job_id"])
+    again = EventStream(server.url, last_event_id=last_id)
+    try:
+        again.wait_for(lambda kind, data: kind == "result" and data["exposure_id"] == missed["exposure_id"],
+                       timeout_s=10)
+        assert not any(kind == "result" and data["exposure_id"] == seen for kind, data in again.events)
+    finally:
+        again.close()
 
 
 def test_the_api_key_and_body_limit_hold_over_a_real_socket(server, sim) -> None:
