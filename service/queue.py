@@ -239,6 +239,13 @@ class JobQueue:
                             (*params, limit, offset))
         return [Job.from_row(r) for r in rows], total
 
+    def check_room(self) -> None:
+        """Raise :class:`QueueFull` now if the queue is full (a cheap early answer; the
+        authoritative check is in :meth:`enqueue`)."""
+        depth = self.db.read("SELECT COUNT(*) AS n FROM jobs WHERE state IN ('queued', 'running')")[0]["n"]
+        if depth >= self.capacity:
+            raise QueueFull(depth, self.capacity, self.retry_after_s)
+
     def depth(self) -> dict[str, int]:
         """Number of jobs in each state."""
         counts = dict.fromkeys(STATES, 0)

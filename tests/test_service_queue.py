@@ -152,6 +152,8 @@ def test_full_queue_refuses_and_says_when_to_retry(db: Database) -> None:
     _enqueue(queue, "a")
     _enqueue(queue, "b")
     _exposure(db, "c")
+    with pytest.raises(QueueFull):
+        queue.check_room()
     with pytest.raises(QueueFull) as info, db.write() as conn:
         queue.enqueue(conn, "c")
     assert info.value.retry_after_s == 7
@@ -159,6 +161,7 @@ def test_full_queue_refuses_and_says_when_to_retry(db: Database) -> None:
     job = queue.claim("w")
     with db.write() as conn:
         queue.complete(conn, job.id, "w")
+    queue.check_room()
     with db.write() as conn:
         assert queue.enqueue(conn, "c").state == "queued"
 

@@ -88,6 +88,12 @@ async def upload_exposure(
                                             description="camera serial, if the metadata lacks it")] = None,
 ) -> JSONResponse:
     run_name = run or state.current_run
+    try:
+        # Refuse before reading 16 MB when the answer is known already.
+        await asyncio.to_thread(state.queue.check_room)
+    except QueueFull:
+        state.metrics.inc("plenodust_uploads_total", result="rejected")
+        raise
     # Bodies are read and decoded a few at a time: many uploads at once wait here (in TCP
     # back-pressure) instead of each holding ~100 MB of the server's memory.
     async with state.upload_slots:
