@@ -594,7 +594,6 @@ def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, pea
                                  background=background, explained=explained, floor=0.3 * min_intensity)
         own = fit.intensity * np.maximum(fit.n_lit, 1)
         parents = np.flatnonzero(left > probe_light * own)
-        log.debug("left-over light / own light: %s", np.round(left / own, 2).tolist())
         n = parents.size
         probes = refined.take(np.r_[parents, parents])
         probes = dataclasses.replace(probes, alpha=np.r_[refined.alpha[parents] - shadow_probe,
