@@ -22,6 +22,7 @@ class Accepted:
     exposure: ExposureRecord
     job: Job
     created: bool
+    retried: bool = False
 
 
 def parse_exposure(files: Mapping[str, bytes], *, name: str | None = None) -> Exposure:
@@ -57,6 +58,8 @@ def ingest(store: Store, queue: JobQueue, files: Mapping[str, bytes], *, run: st
     exposure : Exposure, optional
         The already parsed exposure, to skip parsing again.
 
+    An exposure whose job failed is queued again (same job) when it is sent again.
+
     Raises
     ------
     NotAnExposure
@@ -67,6 +70,7 @@ def ingest(store: Store, queue: JobQueue, files: Mapping[str, bytes], *, run: st
     """
     exposure = exposure or parse_exposure(files)
     kind = store.put_raw(exposure.sha1, files)
+    retried = False
     with store.db.write() as conn:
         record, created = store.register(conn, exposure.sha1, run=run, kind=kind, source=source,
                                          serial=exposure.serial or serial)
@@ -76,4 +80,8 @@ def ingest(store: Store, queue: JobQueue, files: Mapping[str, bytes], *, run: st
             row = conn.execute("SELECT * FROM jobs WHERE exposure_id = ? ORDER BY seq DESC LIMIT 1",
                                (record.id,)).fetchone()
             job = Job.from_row(row)
-    return Accepted(record, job, created)
+            if job.state == "failed":
+                # Sent again after a failure (e.g. once its white images are there): try again.
+                job = queue.retry(conn, job.id) or job
+                retried = job.state == "queued"
+    return Accepted(record, job, created, retried)

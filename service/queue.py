@@ -132,6 +132,31 @@ class JobQueue:
             (job_id, exposure_id, self.clock())).fetchone()
         return Job.from_row(row)
 
+    def retry(self, conn: sqlite3.Connection, job_id: str, *, check_room: bool = True) -> Job | None:
+        """Queue a failed job again, inside the caller's transaction; None if it had not failed.
+
+        Raises
+        ------
+        QueueFull
+            When ``check_room`` and ``capacity`` jobs are already queued or running.
+        """
+        if check_room:
+            depth = conn.execute("SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running')").fetchone()[0]
+            if depth >= self.capacity:
+                raise QueueFull(depth, self.capacity, self.retry_after_s)
+        row = conn.execute(
+            "UPDATE jobs SET state = 'queued', attempts = 0, error = NULL, progress = 0, started_at = NULL, "
+            "finished_at = NULL WHERE id = ? AND state = 'failed' RETURNING *", (job_id,)).fetchone()
+        return Job.from_row(row) if row is not None else None
+
+    def retry_failed(self, error_prefix: str) -> list[Job]:
+        """Queue again every failed job whose error starts with ``error_prefix`` (say, once the
+        white images they lacked have arrived)."""
+        with self.db.write() as conn:
+            ids = [r["id"] for r in conn.execute("SELECT id FROM jobs WHERE state = 'failed' AND error LIKE ?",
+                                                 (error_prefix.replace("%", "") + "%",))]
+            return [job for job_id in ids if (job := self.retry(conn, job_id, check_room=False))]
+
     # -- consumers -------------------------------------------------------------------
 
     def claim(self, owner: str) -> Job | None:

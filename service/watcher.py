@@ -147,6 +147,8 @@ class CameraWatcher:
             shutil.rmtree(incoming)
             self.calibration_serial = serial
             self.bus.publish("calibration", {"serial": serial, "camera": self.serial, "files": len(pulled)})
+            if self.queue.retry_failed("NoWhiteImageError"):  # uploads that came before the camera
+                self.on_queued()
         self.store.db.set_value(f"calibration_pulled:{self.serial}", "1")
 
     def _disconnect(self, error: Exception) -> None:

@@ -185,6 +185,11 @@ def test_an_exposure_of_another_camera_fails_with_a_reason(client, sim) -> None:
     assert job["state"] == "failed" and "CameraMismatchError" in job["error"]
     assert job["attempts"] == 1  # the input's fault: not retried
     assert_problem(client.get(f"/api/v1/exposures/{r.json()['exposure_id']}/particles"), 409)
+    # Sending it again queues the same job again (the user may have fixed the cause).
+    again = upload_lfp(client, variant_lfp(sim.lfp[0], 3, serial="A999999999"), "other-camera")
+    assert again.status_code == 202 and again.json()["retried"] and again.json()["job_id"] == job["id"]
+    rerun = wait_for_job(client.get, job["id"])
+    assert rerun["state"] == "failed" and rerun["started_at"] > job["started_at"]
 
 
 @pytest.mark.parametrize("case", ["text/plain", "empty", "garbage", "truncated-real", "too-large", "no-metadata",

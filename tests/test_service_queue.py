@@ -176,3 +176,23 @@ def test_list_pages_and_filters(db: Database) -> None:
     running, n = queue.list(state="running")
     assert n == 1 and running[0].state == "running"
     assert queue.depth() == {"queued": 4, "running": 1, "done": 0, "failed": 0}
+
+
+def test_a_failed_job_can_be_queued_again(db: Database) -> None:
+    queue = JobQueue(db, capacity=1)
+    job = _enqueue(queue, "a")
+    queue.claim("w")
+    queue.fail(job.id, "w", "NoWhiteImageError: no white images for camera A1")
+    with db.write() as conn:
+        assert queue.retry(conn, job.id).state == "queued"
+    with db.write() as conn:
+        assert queue.retry(conn, job.id) is None  # only failed jobs
+    again = queue.claim("w")
+    assert again.id == job.id and again.attempts == 1 and again.error is None
+    queue.fail(job.id, "w", "NoWhiteImageError: still none")
+    _enqueue(queue, "b")  # the queue is full now ...
+    with pytest.raises(QueueFull), db.write() as conn:
+        queue.retry(conn, job.id)
+    # ... but jobs waiting for white images go back regardless, as accepted data.
+    assert [j.id for j in queue.retry_failed("NoWhiteImageError")] == [job.id]
+    assert queue.retry_failed("NoWhiteImageError") == []

@@ -77,8 +77,15 @@ async def upload_calibration(
         await asyncio.to_thread(state.store.adopt_calibration, camera_serial, staging, source="upload")
     finally:
         await asyncio.to_thread(shutil.rmtree, staging, True)
+    # Jobs that failed for want of white images run now.
+    retried = await asyncio.to_thread(state.queue.retry_failed, "NoWhiteImageError")
+    if retried:
+        state.runner.wake()
+    for job in retried:
+        state.bus.publish("job", job.public())
     state.bus.publish("calibration", {"serial": camera_serial, "images": len(whites)})
-    return JSONResponse({"serial": camera_serial, "white_images": len(whites)}, status_code=201,
+    return JSONResponse({"serial": camera_serial, "white_images": len(whites),
+                         "jobs_retried": [job.id for job in retried]}, status_code=201,
                         headers={"Location": "/api/v1/calibrations"})
 
 

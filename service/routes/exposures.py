@@ -78,7 +78,8 @@ async def _read_upload(request: Request) -> dict[str, bytes]:
 
 @router.post("", status_code=202, dependencies=[ApiKey], openapi_extra=_UPLOAD_BODY,
              summary="Upload one raw exposure and queue it",
-             responses={200: {"description": "this exposure was uploaded before; its job"},
+             responses={200: {"description": "this exposure was uploaded before; its job (queued again "
+                                              "with 202 if it had failed)"},
                         503: {"description": "queue full; retry after Retry-After seconds"}})
 async def upload_exposure(
         request: Request, state: State,
@@ -110,16 +111,17 @@ async def upload_exposure(
             state.metrics.inc("plenodust_uploads_total", result="rejected")
             raise
         del exposure
-    state.metrics.inc("plenodust_uploads_total", result="accepted" if accepted.created else "duplicate")
-    if accepted.created:
+    queued = accepted.created or accepted.retried
+    state.metrics.inc("plenodust_uploads_total", result="accepted" if queued else "duplicate")
+    if queued:
         state.runner.wake()
         state.bus.publish("job", {**accepted.job.public(), "run": accepted.exposure.run,
                                   "frame": accepted.exposure.frame})
     location = f"/api/v1/jobs/{accepted.job.id}"
     return JSONResponse({"exposure_id": accepted.exposure.id, "job_id": accepted.job.id,
                          "run": accepted.exposure.run, "frame": accepted.exposure.frame,
-                         "created": accepted.created},
-                        status_code=202 if accepted.created else 200, headers={"Location": location})
+                         "created": accepted.created, "retried": accepted.retried},
+                        status_code=202 if queued else 200, headers={"Location": location})
 
 
 def _exposure_or_404(state: State, exposure_id: str):
