@@ -140,6 +140,9 @@ class JobQueue:
         QueueFull
             When ``check_room`` and ``capacity`` jobs are already queued or running.
         """
+        state = conn.execute("SELECT state FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        if state is None or state["state"] != "failed":
+            return None
         if check_room:
             depth = conn.execute("SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running')").fetchone()[0]
             if depth >= self.capacity:
