@@ -11,9 +11,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import re
-import tempfile
 import zipfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -21,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from .atomic_write import atomic_path
 from .camera_model import CameraModel, Lattice, Optics
 from .errors import CalibrationError, CameraMismatchError, MetadataError, NoWhiteImageError
 from .frame_metadata import lookup
@@ -250,17 +249,8 @@ def save_calibration(calibration: Calibration, path: Path) -> None:
     header["model"] = {"width": model.width, "height": model.height, "black_level": model.black_level,
                        "white_level": model.white_level, "zoom_step": model.zoom_step,
                        "focus_step": model.focus_step, "optics": asdict(model.optics)}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, header=np.array(json.dumps(header)), devignetting=calibration.devignetting)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, header=np.array(json.dumps(header)), devignetting=calibration.devignetting)
 
 
 def read_calibration(path: Path, *, white_sha1: str | None = None) -> Calibration:

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from .atomic_write import atomic_path
 from .camera_model import CameraModel
 from .errors import CalibrationError, ParameterError
 from .image_grid import ImageGrid
@@ -341,9 +342,8 @@ def save_table(table: LightFieldTable, path: str | Path) -> Path:
     for n, (key, value) in enumerate(table._normalisations.items()):
         payload[f"norm{n}_key"] = np.frombuffer(key, dtype=np.uint8)
         payload[f"norm{n}_value"] = value
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, **payload)
-    tmp.replace(path)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, **payload)
     return path
 
 

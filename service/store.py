@@ -28,7 +28,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from service.atomic import write_bytes_atomic, write_with_atomic
+from analysis.atomic_write import atomic_path, write_all_atomic
 from service.database import Database
 from service.results import JobOutput
 
@@ -83,9 +83,11 @@ class Store:
         Writing the same exposure again changes nothing.
         """
         kind = "lfp" if ".lfp" in files else "raw"
-        for path in self.raw_paths(exposure_id, kind):
-            if not path.exists():
-                write_bytes_atomic(path, files[path.suffix])
+        paths = self.raw_paths(exposure_id, kind)
+        missing = {path: files[path.suffix] for path in paths if not path.exists()}
+        if missing:
+            paths[0].parent.mkdir(parents=True, exist_ok=True)
+            write_all_atomic(missing)  # a .RAW appears only with its .TXT
         return kind
 
     def register(self, conn: sqlite3.Connection, exposure_id: str, *, run: str, kind: str,
@@ -147,7 +149,8 @@ class Store:
                                           compression_opts=1)
                     slices.create_dataset("alpha", data=np.asarray(output.slice_alpha, dtype=np.float64))
 
-        write_with_atomic(path, write)
+        with atomic_path(path) as tmp:
+            write(tmp)
         return path
 
     def index_result(self, conn: sqlite3.Connection, record: ExposureRecord, particles: int) -> None:
@@ -228,7 +231,8 @@ class Store:
             order = np.argsort(table["frame"], kind="stable") if "frame" in table else None
             if order is not None:
                 table = {name: column[order] for name, column in table.items()}
-            write_with_atomic(path, lambda tmp: _write_run(tmp, record.run, table, exposures))
+            with atomic_path(path) as tmp:
+                _write_run(tmp, record.run, table, exposures)
 
     def read_run_columns(self, run: str) -> dict[str, np.ndarray] | None:
         """All particles of a run with a ``frame`` column, or None for an unknown run."""

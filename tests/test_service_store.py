@@ -9,7 +9,7 @@ import h5py
 import numpy as np
 import pytest
 
-from service.atomic import write_bytes_atomic, write_with_atomic
+from analysis.atomic_write import atomic_path, write_atomic
 from service.database import Database
 from service.results import JobOutput
 from service.store import Store
@@ -39,14 +39,11 @@ def _record(store: Store, exposure_id: str, run: str):
 
 def test_atomic_write_keeps_the_old_file_when_writing_fails(tmp_path: Path) -> None:
     target = tmp_path / "f.bin"
-    write_bytes_atomic(target, b"old")
+    write_atomic(target, b"old")
 
-    def broken(tmp: Path) -> None:
+    with pytest.raises(OSError), atomic_path(target) as tmp:
         tmp.write_bytes(b"half")
         raise OSError("disk full")
-
-    with pytest.raises(OSError):
-        write_with_atomic(target, broken)
     assert target.read_bytes() == b"old"
     assert [p.name for p in tmp_path.iterdir()] == ["f.bin"]  # no temporary left behind
 
