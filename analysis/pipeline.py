@@ -9,6 +9,7 @@ parameter object stored with every result::
     product = stack * sub
     dets    = [detect(s, threshold=t) for s in product]   # analysis.moments
     peaks   = find_depth_peaks(link_tracks(dets), alphas) # analysis.depth
+    peaks  += find_maxima(product, alphas, threshold=t)   # analysis.maxima: crowds, merged blobs
     peaks   = refine_peaks(image, fit_table, grid, peaks, ...)  # analysis.ray_depth: forward-model
               # fit to the raw pixels; then hidden particles (probes in front of and behind each),
               # and a second pass over the raw image with the found particles' light taken off
@@ -42,6 +43,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Mapping
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .calibration import Calibration
 from .camera_model import CameraModel
@@ -51,6 +53,7 @@ from .errors import CameraMismatchError, MetadataError, ParameterError
 from .exposure import Exposure
 from .image_grid import ImageGrid
 from .lightfield import TABLE_FORMAT_VERSION, LightFieldTable, build_table, load_table, save_table
+from .maxima import find_maxima
 from .moments import detect
 from .ray_depth import RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
 from .refocus import alphas_for_depth_range, default_alphas, products, refocus_stack, select_samples, \
@@ -99,6 +102,14 @@ class PipelineParams:
     shadow_probe
         After the fit, where light is left over around a particle, look for a hidden one this far
         in alpha in front of and behind it (0 turns it off).
+    maxima_half_slices
+        Also take the local maxima of the product stack over (alpha, y, x) as candidates
+        (:func:`analysis.maxima.find_maxima`, footprint +-this many slices and +-1 pixel) where no
+        brightness-curve peak accounts for them: crowds, where neighbours' blobs merge into one
+        component. -1 turns it off.
+    merge_slices
+        Refined particles closer than ``link_radius_px`` in the image and this many slices in alpha
+        are one particle (the brighter kept): candidates of one particle converge there.
     passes
         Detection passes: each after the first looks again at the raw image with the light of the
         particles found so far taken off (crowded clusters, where blobs merge). 1: a single pass.
@@ -130,9 +141,11 @@ class PipelineParams:
     refine: bool = True
     refine_alpha_range: float = 0.004
     min_intensity_sigma: float = 8.0
-    max_fit_residual: float = 0.6
+    max_fit_residual: float = 0.35
     shadow_probe: float = 0.0065
     passes: int = 2
+    maxima_half_slices: int = 2
+    merge_slices: float = 4.0
     pixel_size_mm: float | None = None
     depth_per_alpha_mm: float | None = None
     reference_alpha: float = 1.0
@@ -397,8 +410,49 @@ def locate(product: np.ndarray, alphas: np.ndarray, params: PipelineParams, *, t
     step = float(alphas[1] - alphas[0])
     peaks = merge_duplicates(peaks, radius_px=params.link_radius_px, alpha_tolerance=1.5 * step)
     t3 = time.perf_counter()
-    timings.update(detect=t1 - t0, link=t2 - t1, peaks=t3 - t2)
+    if params.maxima_half_slices >= 0:
+        peaks, tracks = _add_maxima(product, alphas, params, threshold, peaks, tracks)
+    t4 = time.perf_counter()
+    timings.update(detect=t1 - t0, link=t2 - t1, peaks=t3 - t2, maxima=t4 - t3)
     return peaks, tracks
+
+
+def _add_maxima(product: np.ndarray, alphas: np.ndarray, params: PipelineParams, threshold: float,
+                peaks: Peaks, tracks: Tracks) -> tuple[Peaks, Tracks]:
+    """Add the local maxima of the product stack that no brightness-curve peak accounts for.
+
+    In crowds the blobs of neighbours merge into one component per slice, and their tracks hold
+    one peak for several particles; each particle still makes a maximum of its own over (alpha,
+    y, x). Each new candidate gets a curve of its own: the product at its pixel, slice by slice.
+    """
+    m = find_maxima(product, alphas, threshold=threshold, half_slices=params.maxima_half_slices, half_px=1)
+    if len(m) == 0:
+        return peaks, tracks
+    step = float(alphas[1] - alphas[0])
+    new = np.ones(len(m), dtype=bool)
+    if len(peaks):
+        # Within the linking radius and two slices of a peak: the same particle.
+        near = cKDTree(np.column_stack([peaks.x, peaks.y])).query_ball_point(
+            np.column_stack([m.x, m.y]), r=params.link_radius_px)
+        for i, js in enumerate(near):
+            if js and np.min(np.abs(peaks.alpha[js] - m.alpha[i])) <= 2 * step:
+                new[i] = False
+    idx = np.flatnonzero(new)
+    n = idx.size
+    if n == 0:
+        return peaks, tracks
+    rows = np.clip(np.rint(m.y[idx]).astype(np.int64), 0, product.shape[1] - 1)
+    cols = np.clip(np.rint(m.x[idx]).astype(np.int64), 0, product.shape[2] - 1)
+    curve = product[:, rows, cols].T.astype(np.float64)
+    curve[curve <= threshold] = np.nan
+    extra = Tracks(x=np.repeat(m.x[idx, None], alphas.size, axis=1), y=np.repeat(m.y[idx, None], alphas.size, axis=1),
+                   brightness=curve)
+    cand = Peaks(track=len(tracks) + np.arange(n, dtype=np.int64), alpha=m.alpha[idx], x=m.x[idx], y=m.y[idx],
+                 peak_height=m.brightness[idx], peak_width=np.full(n, np.nan), residual=np.full(n, np.nan),
+                 prominence=np.ones(n))
+    tracks = Tracks(x=np.vstack([tracks.x, extra.x]), y=np.vstack([tracks.y, extra.y]),
+                    brightness=np.vstack([tracks.brightness, extra.brightness]))
+    return _concat_peaks(peaks, cand), tracks
 
 
 def process(exposure: Exposure, calibration: Calibration, params: PipelineParams | None = None, *,
@@ -510,7 +564,8 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                                   alpha_half_range=params.refine_alpha_range,
                                   min_intensity=params.min_intensity_sigma * max(samples.sigma, 0.5),
                                   max_residual=params.max_fit_residual, shadow_probe=params.shadow_probe,
-                                  merge_radius_px=params.link_radius_px, step=float(alphas[1] - alphas[0]))
+                                  merge_radius_px=params.link_radius_px,
+                                  merge_alpha=params.merge_slices * float(alphas[1] - alphas[0]))
         first_heights = peaks.peak_height
         peaks, fit = _inside(peaks, fit, alphas)
         timings["refine"] = time.perf_counter() - t
@@ -536,7 +591,8 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                                         aperture_per_lens_plane=ratio, alpha_half_range=params.refine_alpha_range,
                                         min_intensity=params.min_intensity_sigma * max(samples.sigma, 0.5),
                                         max_residual=params.max_fit_residual, shadow_probe=0.0,
-                                        merge_radius_px=params.link_radius_px, step=float(alphas[1] - alphas[0]),
+                                        merge_radius_px=params.link_radius_px,
+                                        merge_alpha=params.merge_slices * float(alphas[1] - alphas[0]),
                                         subtract=explained)
             new, new_fit = _inside(new, new_fit, alphas)
             # As for hidden particles: a new one must fit well and be about as bright as the others
@@ -548,7 +604,8 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
             both, both_fit = _concat_peaks(peaks, new), _concat_fits(fit, new_fit)
             priority = np.r_[fit.intensity + 1e12, new_fit.intensity]
             kept = unique_indices(both, radius_px=params.link_radius_px,
-                                  alpha_tolerance=2 * float(alphas[1] - alphas[0]), priority=priority)
+                                  alpha_tolerance=params.merge_slices * float(alphas[1] - alphas[0]),
+                                  priority=priority)
             if kept.size == len(peaks):
                 break
             peaks, fit = both.take(kept), _take_fit(both_fit, kept)
@@ -565,7 +622,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
 
 def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, peaks: Peaks, *, background: float,
                  aperture_per_lens_plane: float, alpha_half_range: float, min_intensity: float,
-                 max_residual: float, merge_radius_px: float, step: float, shadow_probe: float = 0.0,
+                 max_residual: float, merge_radius_px: float, merge_alpha: float, shadow_probe: float = 0.0,
                  probe_residual: float = 0.2, probe_fraction: float = 0.35, probe_light: float = 0.5,
                  probe_half_range: float = 0.0025, subtract: np.ndarray | None = None,
                  max_probed: int = 100000) -> tuple[Peaks, RayFit]:
@@ -573,14 +630,15 @@ def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, pea
 
     Peaks whose fitted intensity is below ``min_intensity``, or whose misfit exceeds
     ``max_residual``, are dropped; peaks that converge onto one particle are merged
-    (the brighter kept). Returns the refined peaks and the matching rows of the fit.
+    (within ``merge_radius_px`` and ``merge_alpha``; the brighter kept). Returns the refined peaks
+    and the matching rows of the fit.
     """
     sx0, sy0 = grid.to_lens_plane(peaks.x, peaks.y)
     fit = fit_rays(image, table, sx0, sy0, peaks.alpha, background=background,
                    aperture_per_lens_plane=aperture_per_lens_plane, alpha_half_range=alpha_half_range,
                    subtract=subtract)
     refined, fit = _accept(peaks, fit, grid, min_intensity, max_residual)
-    kept = unique_indices(refined, radius_px=merge_radius_px, alpha_tolerance=2 * step, priority=fit.intensity)
+    kept = unique_indices(refined, radius_px=merge_radius_px, alpha_tolerance=merge_alpha, priority=fit.intensity)
     refined, fit = refined.take(kept), _take_fit(fit, kept)
     if shadow_probe > 0 and len(refined) and len(refined) <= max_probed:
         # A particle hidden behind another (same line of sight, other depth) often merges into its
@@ -614,7 +672,7 @@ def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, pea
             both_fit = _concat_fits(fit, pfit)
             # Found particles win over probes that converged onto them.
             priority = np.r_[fit.intensity + 1e12, pfit.intensity]
-            kept = unique_indices(both, radius_px=merge_radius_px, alpha_tolerance=2 * step, priority=priority)
+            kept = unique_indices(both, radius_px=merge_radius_px, alpha_tolerance=merge_alpha, priority=priority)
             refined, fit = both.take(kept), _take_fit(both_fit, kept)
     return refined, fit
 
