@@ -304,15 +304,20 @@ def _fit_log_parabola(signal: np.ndarray, peaks: np.ndarray, half: int
                   np.stack([s[1], s[2], s[3]], -1),
                   np.stack([s[2], s[3], s[4]], -1)], -2)
     rhs = np.stack([np.sum(w * logs * u**p, axis=1) for p in range(3)], -1)
-    coef = np.linalg.solve(a, rhs[..., None])[..., 0]
+    n_used = w.sum(axis=1)
+    # A peak seen in fewer than three slices has no parabola (the system is singular): it keeps
+    # its slice, its own height and no width.
+    fit = n_used >= 3
+    coef = np.zeros((peaks.size, 3))
+    if fit.any():
+        coef[fit] = np.linalg.solve(a[fit], rhs[fit][..., None])[..., 0]
     c0, c1, c2 = coef[:, 0], coef[:, 1], coef[:, 2]
-    good = c2 < 0
+    good = fit & (c2 < 0)
     offset = np.where(good, -c1 / np.where(good, 2 * c2, -1.0), 0.0)
     offset = np.clip(offset, -1.0, 1.0)
     log_height = c0 + c1 * offset + c2 * offset**2
     height = np.where(good, np.exp(log_height), signal[peaks])
     sigma = np.where(good, np.sqrt(-0.5 / np.where(good, c2, -1.0)), np.nan)
-    n_used = w.sum(axis=1)
     fitted = c0[:, None] + c1[:, None] * u + c2[:, None] * u**2
     sq = np.sum(w * (logs - fitted) ** 2, axis=1)
     residual = np.where(n_used > 3, np.sqrt(sq / np.maximum(n_used - 3, 1)), np.nan)

@@ -137,3 +137,14 @@ def test_empty_input_gives_empty_peaks():
     tracks = link_tracks([detect(np.zeros((10, 10)), threshold=1.0) for _ in ALPHAS])
     assert len(tracks) == 0
     assert len(find_depth_peaks(tracks, ALPHAS)) == 0
+
+
+def test_peak_in_one_slice_keeps_its_slice():
+    # Neighbours under the fit level leave one point: no parabola can be fitted (singular).
+    b = np.zeros(40)
+    b[19:22] = [10.0, 100.0, 10.0]
+    tracks = Tracks(x=np.full((1, 40), 10.0), y=np.full((1, 40), 20.0), brightness=b[None])
+    peaks = find_depth_peaks(tracks, ALPHAS)
+    assert len(peaks) == 1
+    assert peaks.alpha[0] == pytest.approx(ALPHAS[20])
+    assert peaks.peak_height[0] == pytest.approx(100.0) and np.isnan(peaks.peak_width[0])
