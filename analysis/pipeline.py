@@ -166,6 +166,9 @@ class PipelineParams:
             if len(self.depth_range_mm) != 2 or not (0 < self.depth_range_mm[0] < self.depth_range_mm[1]):
                 raise ParameterError(f"depth_range_mm must be [near, far] with 0 < near < far, "
                                      f"got {self.depth_range_mm}")
+        if self.merge_slices < 0 or self.maxima_half_slices < -1:
+            raise ParameterError(f"need merge_slices >= 0 and maxima_half_slices >= -1 (-1: off), "
+                                 f"got {self.merge_slices}, {self.maxima_half_slices}")
         if not (1 <= self.passes <= 5):
             raise ParameterError(f"passes must be 1 ... 5, got {self.passes}")
         if not (0 < self.refine_alpha_range < 0.1):
