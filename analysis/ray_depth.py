@@ -310,6 +310,14 @@ def _fit_one(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, n_la
             sum_v2 += values[j] * values[j]
         m = ptr[n_lens] - ptr[0]
     r_ap = np.sqrt(r_ap2)
+    # Circumradius of a lens cell (a regular hexagon's is pitch / sqrt(3)), and the farthest
+    # point of a pixel's footprint; samples within `inner` of the aperture centre see no crosstalk.
+    cell_r = 0.6 * pitch
+    s_max = 0.0
+    for q in range(n_sub):
+        s_max = max(s_max, np.sqrt(sub[q, 0] * sub[q, 0] + sub[q, 1] * sub[q, 1]))
+    inner = max(r_ap - s_max, 0.0)
+    inner2 = inner * inner * (1.0 - 1e-9)
     k = 0
     for ic in range(n_c):
         c = c_lo + (c_hi - c_lo) * ic / max(n_c - 1, 1)
@@ -330,8 +338,19 @@ def _fit_one(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, n_la
                     ey = centres[lens, 1] - sy
                     if ex * ex + ey * ey > reach2:
                         continue
+                    # A sample away from the rim (no crosstalk) is lit only if its ray, spread by the
+                    # pixel's points, can reach the cell: skip the others without the full test.
+                    lim = cell_r + abs(c) * s_max
+                    lim2 = lim * lim
                     for j in range(ptr[lens], ptr[lens + 1]):
-                        frac = _lit_fraction(uv[j, 0], uv[j, 1], centres[lens, 0], centres[lens, 1], sx, sy, c,
+                        u0 = uv[j, 0]
+                        v0 = uv[j, 1]
+                        if u0 * u0 + v0 * v0 <= inner2:
+                            ox = sx + c * u0 - centres[lens, 0]
+                            oy = sy + c * v0 - centres[lens, 1]
+                            if ox * ox + oy * oy > lim2:
+                                continue
+                        frac = _lit_fraction(u0, v0, centres[lens, 0], centres[lens, 1], sx, sy, c,
                                              normals, half_sq, neigh_u, neigh_s, sub, r_ap2)
                         if frac > 0.0:
                             s_vf += values[j] * frac
