@@ -648,7 +648,8 @@ def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, pea
     ``max_residual``, are dropped; peaks that converge onto one particle are merged
     (within ``merge_radius_px`` and ``merge_alpha``; the brighter kept). ``fit_depths`` and
     ``fit_lateral`` set the fit's grid (:func:`analysis.ray_depth.fit_rays`: coarse depths, and
-    positions per side in both passes). Returns the refined peaks and the matching rows of the fit.
+    positions per side in both passes; probes for hidden particles use it in the coarse pass only,
+    since crowds probe many). Returns the refined peaks and the matching rows of the fit.
     """
     sx0, sy0 = grid.to_lens_plane(peaks.x, peaks.y)
     fit = fit_rays(image, table, sx0, sy0, peaks.alpha, background=background,
@@ -678,8 +679,7 @@ def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, pea
         psx, psy = grid.to_lens_plane(probes.x, probes.y)
         pfit = fit_rays(image, table, psx, psy, probes.alpha, background=background,
                         aperture_per_lens_plane=aperture_per_lens_plane, alpha_half_range=probe_half_range,
-                        n_alpha=17, subtract=explained, coarse_lateral=fit_lateral,
-                        fine=_fine_grid(fit_lateral))
+                        n_alpha=17, subtract=explained, coarse_lateral=fit_lateral)
         log.debug("shadow probes: %d of %d particles probed, %d found", n, len(refined), len(probes))
         # A probe must be a particle of its own: as bright as a good part of the one it hides behind
         # (what is left of a neighbour's imperfectly modelled light is a tenth of it or less).
