@@ -65,7 +65,8 @@ def find_maxima(stack: np.ndarray, alphas: np.ndarray, *, threshold: float, half
         Values at or below it are background.
     half_slices, half_px : int
         The footprint: a voxel is a maximum when no voxel within ``half_slices`` slices and
-        ``half_px`` pixels (a box) is higher (ties go to the first in memory order).
+        ``half_px`` pixels (a box) is higher (ties go to the first in memory order). Pixels on
+        the image border are never maxima.
     window_px : int
         Half-width of the centroid window (pixels).
 
@@ -76,7 +77,7 @@ def find_maxima(stack: np.ndarray, alphas: np.ndarray, *, threshold: float, half
     Raises
     ------
     ParameterError
-        For a stack that is not 3-D or a footprint below 0.
+        For a stack that is not 3-D, alphas that do not match it, or a footprint out of range.
     """
     stack = np.ascontiguousarray(stack, dtype=np.float32)
     if stack.ndim != 3:
@@ -84,8 +85,9 @@ def find_maxima(stack: np.ndarray, alphas: np.ndarray, *, threshold: float, half
     alphas = np.asarray(alphas, dtype=np.float64)
     if alphas.shape != (stack.shape[0],):
         raise ParameterError(f"need one alpha per slice: {alphas.shape[0]} alphas for {stack.shape[0]} slices")
-    if half_slices < 0 or half_px < 0 or window_px < 0:
-        raise ParameterError("half_slices, half_px and window_px must be 0 or more")
+    if half_slices < 0 or half_px < 1 or window_px < 0:
+        raise ParameterError(f"need half_slices >= 0, half_px >= 1 and window_px >= 0, got {half_slices}, "
+                             f"{half_px}, {window_px}")
     out = np.empty((_count_limit(stack, float(threshold)), 6))
     n = _maxima(stack, float(threshold), int(half_slices), int(half_px), int(window_px), out)
     out = out[:n]

@@ -9,6 +9,7 @@ import pytest
 
 from analysis.accuracy import score
 from analysis.calibration import load_calibration
+from analysis.errors import ParameterError
 from analysis.exposure import read_exposure
 from analysis.maxima import find_maxima
 from analysis.moments import detect
@@ -70,3 +71,13 @@ def test_maxima_split_touching_blobs():
     assert np.allclose(m.y, 5.0)
     # sub-slice alpha: the window sums fall off faster above slice 2 than below
     assert np.all(m.alpha < 1.0) and np.all(m.alpha > 0.995)
+
+
+def test_maxima_refuse_a_bad_footprint():
+    stack = np.zeros((3, 5, 5), dtype=np.float32)
+    with pytest.raises(ParameterError):
+        find_maxima(stack, np.linspace(0.99, 1.01, 3), threshold=0.0, half_px=0)
+    with pytest.raises(ParameterError):
+        find_maxima(stack, np.linspace(0.99, 1.01, 4), threshold=0.0)
+    with pytest.raises(ParameterError):
+        find_maxima(stack[0], np.linspace(0.99, 1.01, 3), threshold=0.0)
