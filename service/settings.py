@@ -23,7 +23,7 @@ class Settings(BaseSettings):
     data_dir : Path
         SQLite database, raw exposures, results and run files live here.
     camera : str
-        ``usb``, ``wifi:HOST``, ``simulated:DIR`` or ``none``.
+        ``usb``, ``wifi:HOST[:PORT]``, ``simulated:DIR`` or ``none``.
     executor : str
         ``local`` (a warm process pool on this machine) or ``dask://HOST:PORT``.
     workers : int
@@ -68,7 +68,7 @@ class Settings(BaseSettings):
     def _camera_spec(cls, value: str) -> str:
         if value in ("none", "usb") or value.startswith(("wifi:", "simulated:")):
             return value
-        raise ValueError(f"camera {value!r}: use usb, wifi:HOST, simulated:DIR or none")
+        raise ValueError(f"camera {value!r}: use usb, wifi:HOST[:PORT], simulated:DIR or none")
 
     @field_validator("executor")
     @classmethod

@@ -19,6 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import driver
 from analysis.errors import AnalysisError
 from analysis.whites import load_white_images
 from service.events import EventBus
@@ -35,21 +36,22 @@ class CameraUnavailable(Exception):
 
 
 def open_camera(spec: str) -> Any:
-    """Open the camera a ``--camera`` value names (``usb``, ``wifi:HOST``, ``simulated:DIR``).
+    """Open the camera a ``--camera`` value names: ``usb``, ``wifi:HOST[:PORT]`` or ``simulated:DIR``.
 
     Raises
     ------
     CameraUnavailable
-        If the driver has no opener for that kind of camera.
+        For any other value.
     """
-    import driver
-
     kind, _, arg = spec.partition(":")
-    name = {"usb": "open_usb", "wifi": "open_wifi", "simulated": "open_simulated"}.get(kind)
-    opener = getattr(driver, name, None) if name else None
-    if opener is None:
-        raise CameraUnavailable(f"the driver cannot open a {kind!r} camera (driver.{name} is missing)")
-    return opener(arg) if arg else opener()
+    if kind == "usb":
+        return driver.open_usb()
+    if kind == "wifi" and arg:
+        host, _, port = arg.partition(":")
+        return driver.open_wifi(host, int(port)) if port else driver.open_wifi(host)
+    if kind == "simulated" and arg:
+        return driver.open_simulated(arg)
+    raise CameraUnavailable(f"camera {spec!r}: use usb, wifi:HOST[:PORT] or simulated:DIR")
 
 
 class CameraWatcher:

@@ -19,7 +19,7 @@ from service.events import EventBus
 from service.metrics import Metrics
 from service.queue import JobQueue, QueueFull
 from service.store import Store
-from service.watcher import CameraUnavailable, CameraWatcher
+from service.watcher import CameraUnavailable, CameraWatcher, open_camera
 from service_helpers import simulate
 
 
@@ -121,3 +121,13 @@ def test_a_camera_that_goes_away_is_reported_and_counted(camera_dir, parts) -> N
     assert watcher.status()["state"] == "disconnected" and watcher.status()["last_error"]
     assert watcher.metrics.value("plenodust_usb_errors_total") == 1
     watcher.close()
+
+
+def test_camera_specs_open_the_named_camera(camera_dir) -> None:
+    with open_camera(f"simulated:{camera_dir}") as camera:
+        assert camera.info().serial == "A000000001"
+    with SimulatedWifiServer(camera_dir) as server, open_camera(f"wifi:127.0.0.1:{server.port}") as camera:
+        assert [pic.name for pic in camera.pictures()] == ["IMG_0001"]
+    for bad in ("usb2", "wifi:", "simulated:", "firewire:1"):
+        with pytest.raises(CameraUnavailable, match="use usb, wifi:HOST"):
+            open_camera(bad)

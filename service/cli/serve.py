@@ -18,7 +18,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--port", type=int, default=None, help="port (default 8000; 0 picks a free one)")
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
                         help="data folder: SQLite, raw exposures, HDF5 results (default ./plenodust-data)")
-    parser.add_argument("--camera", default=None, metavar="usb|wifi:HOST|simulated:DIR|none",
+    parser.add_argument("--camera", default=None, metavar="usb|wifi:HOST[:PORT]|simulated:DIR|none",
                         help="camera to watch for new shots (default none)")
     parser.add_argument("--executor", default=None, metavar="local|dask://HOST:PORT",
                         help="where jobs run (default: a local warm process pool)")
