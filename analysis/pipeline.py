@@ -594,7 +594,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
             rstack = refocus_stack(residual, table, alphas, grid=grid, samples=rs)
             rsub = subaperture_image(residual, table, fraction=params.aperture_fraction,
                                      blur_sigma_px=params.blur_sigma_px, grid=grid, samples=rs)
-            new, _ = locate(products(rstack, rsub, out=rstack), alphas, params, threshold=threshold)
+            new, new_tracks = locate(products(rstack, rsub, out=rstack), alphas, params, threshold=threshold)
             # Left-over light of imperfectly modelled particles makes weak blobs (a fifth of the
             # first pass's typical peak or less); a particle of its own is about as bright as the rest.
             new = new.take(np.flatnonzero(new.peak_height >= 0.3 * np.median(first_heights)))
@@ -623,6 +623,11 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                                   priority=priority)
             if kept.size == len(peaks):
                 break
+            # The new peaks' curves are tracks of the residual's stack: append them to the first
+            # pass's, so each particle's track index still points at its own curve.
+            both = dataclasses.replace(both, track=np.r_[peaks.track, new.track + len(tracks)])
+            tracks = Tracks(x=np.vstack([tracks.x, new_tracks.x]), y=np.vstack([tracks.y, new_tracks.y]),
+                            brightness=np.vstack([tracks.brightness, new_tracks.brightness]))
             peaks, fit = both.take(kept), _take_fit(both_fit, kept)
         timings["more_passes"] = time.perf_counter() - t
     report(0.9)
@@ -697,9 +702,10 @@ def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, pea
 
 
 def _fine_grid(lateral: int) -> tuple[int, float, int, int]:
-    # The fit's fine pass: 5 depths, `lateral` positions per side over +-0.25 pitch, 2 x 2 points
-    # per pixel (the default 3 x 3 positions keep fit_rays' own 9 depths).
-    return (9, 0.25, 3, 2) if lateral == 3 else (5, 0.25, lateral, 2)
+    # The fit's fine pass: 9 depths, `lateral` positions per side over +-0.25 pitch, 3 x 3 points
+    # per pixel: the partly lit rim pixels of the neighbouring lenses tell a blur of about one
+    # pitch in front of focus from one behind it only when each pixel's area is modelled.
+    return (9, 0.25, lateral, 3)
 
 
 def _inside(peaks: Peaks, fit: RayFit, alphas: np.ndarray) -> tuple[Peaks, RayFit]:

@@ -163,16 +163,15 @@ def aperture_per_lens_plane(optics: Any) -> float:
 
 
 def _pixel_footprint(n_side: int, blur_px: float) -> np.ndarray:
-    """Points (pixels) standing for one pixel's area blurred by a Gaussian: an even grid over the
-    pixel, each moved by a fixed Gaussian offset (seeded, so the fit is deterministic)."""
+    """Points (pixels) standing for one pixel's area blurred by a Gaussian: an even ``n_side`` x
+    ``n_side`` grid, centred, spaced so its variance per axis is the pixel's (1/12) plus the
+    blur's (a symmetric footprint: a lopsided one shifts every fitted position)."""
     if n_side <= 1:
         return np.zeros((1, 2))  # the pixel centre alone
-    g = (np.arange(n_side) + 0.5) / n_side - 0.5
+    step = np.sqrt(12.0 * (1.0 / 12.0 + blur_px**2) / (n_side**2 - 1))
+    g = (np.arange(n_side) - 0.5 * (n_side - 1)) * step
     gx, gy = np.meshgrid(g, g)
-    pts = np.column_stack([gx.ravel(), gy.ravel()])
-    if blur_px > 0:
-        pts = pts + blur_px * np.random.default_rng(12345).standard_normal(pts.shape)
-    return pts
+    return np.column_stack([gx.ravel(), gy.ravel()])
 
 
 def _index(table: LightFieldTable) -> _TableIndex:
@@ -187,14 +186,18 @@ def _index(table: LightFieldTable) -> _TableIndex:
 def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m: np.ndarray,
              alpha0: np.ndarray, *, background: float, aperture_per_lens_plane: float, alpha_half_range: float = 0.004, n_alpha: int = 33,
              lateral_half_range_pitches: float = 0.4, reach_pitches: float = 1.2, blur_px: float = 0.5,
-             temperature: float = 1.0, fine: tuple[int, float, int, int] = (9, 0.25, 3, 2),
+             temperature: float = 0.5, coarse_temperature: float = 1.0,
+             fine: tuple[int, float, int, int] = (9, 0.25, 3, 3),
              subtract: np.ndarray | None = None, coarse_points: int = 1, coarse_lateral: int = 3,
              prior_sigma: float | None = None) -> RayFit:
     """Refine position and depth of particles by fitting the forward model to the raw samples.
 
     Two passes: a coarse grid of ``n_alpha`` depths over ``alpha0 +- alpha_half_range`` and 3 x 3
     positions (pixels as ``coarse_points**2`` points; 1: the centre), then a fine grid around the coarse estimate (``fine``: by
-    default 9 depths over twice its spread, 3 x 3 positions over +-0.25 pitch, 2 x 2 points).
+    default 9 depths over twice its spread, 3 x 3 positions over +-0.25 pitch, 3 x 3 points).
+    Where a blur of about a pitch spills a sliver of light into the neighbouring lenses, only
+    the fine pass's pixel areas (partly lit rim pixels) tell in front of focus from behind it:
+    the aperture lands on the MLA mirrored, so the other side of those micro-images is lit.
 
     The table should include the micro-images' rim pixels (``build_table(..., rim_px=-0.5)``):
     where a particle's light splits between lenses, the neighbour's share often lands there.
@@ -223,8 +226,11 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
         Gaussian blur (pixels) of the sensor image (diffraction, crosstalk): each pixel is
         modelled by points spread over its area and this blur, so partly lit pixels at the
         edges of a lens's share of the light count by how much of them is lit.
-    temperature : float
-        Cost difference, in mismatched pixels, over which candidates lose weight by ``1/e``.
+    temperature, coarse_temperature : float
+        Cost difference, in mismatched pixels, over which candidates lose weight by ``1/e``, in
+        the fine and the coarse pass. Half a pixel in the fine pass, whose pixel areas let the few
+        partly lit pixels that decide the sign of the defocus count; a whole one in the coarse
+        pass, whose pixel centres misjudge those pixels (sharper, it settles on wrong basins).
     fine : (n_alpha, lateral_half_range_pitches, n_lateral, pixel_points_per_side)
         The fine pass's grid.
     prior_sigma : float, optional
@@ -261,7 +267,8 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
              lateral_half_range_pitches * idx.pitch_m, idx.pitch_m, idx.normals, idx.half_sq,
              idx.neighbours * aperture_per_lens_plane, idx.neighbours,
              _pixel_footprint(coarse_points, blur_px) * idx.u_per_px, _pixel_footprint(int(fine[3]), blur_px) * idx.u_per_px,
-             table.aperture_radius_m ** 2 * (1 + 1e-9), float(temperature), int(fine[0]), float(fine[1]), int(fine[2]),
+             table.aperture_radius_m ** 2 * (1 + 1e-9), float(temperature), float(coarse_temperature), int(fine[0]),
+             float(fine[1]), int(fine[2]),
              int(coarse_lateral), 0.0 if not prior_sigma else 0.5 / prior_sigma ** 2, out)
     return RayFit(sx_m=out[:, 0], sy_m=out[:, 1], alpha=1.0 / (1.0 - out[:, 2]), intensity=out[:, 3],
                   n_lit=out[:, 4].astype(np.int64), residual=out[:, 5],
@@ -270,8 +277,8 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
 
 @numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
 def _fit_all(centres, sample_ptr, lens_ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, pitch, normals,
-             half_sq, neigh_u, neigh_s, sub_coarse, sub_fine, r_ap2, temperature, n_c_fine, fine_lat, n_lat_fine,
-             n_lat_coarse, prior_k, out):
+             half_sq, neigh_u, neigh_s, sub_coarse, sub_fine, r_ap2, temperature, coarse_temperature, n_c_fine,
+             fine_lat, n_lat_fine, n_lat_coarse, prior_k, out):
     # One particle per prange iteration; each writes only its own row of `out`.
     for p in prange(sx0.size):
         la, lb = lens_ptr[p], lens_ptr[p + 1]
@@ -280,7 +287,7 @@ def _fit_all(centres, sample_ptr, lens_ptr, uv, values, sx0, sy0, c_lo, c_hi, n_
         coarse = np.empty(7)
         c_prior = 0.5 * (c_lo[p] + c_hi[p])
         _fit_one(cen, ptr, uv, values, sx0[p], sy0[p], c_lo[p], c_hi[p], n_c, half_lat, n_lat_coarse, pitch,
-                 normals, half_sq, neigh_u, neigh_s, sub_coarse, r_ap2, temperature, c_prior, prior_k, coarse)
+                 normals, half_sq, neigh_u, neigh_s, sub_coarse, r_ap2, coarse_temperature, c_prior, prior_k, coarse)
         if coarse[3] <= 0.0:
             out[p, :] = coarse
             continue
@@ -350,8 +357,23 @@ def _fit_one(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, n_la
                             oy = sy + c * v0 - centres[lens, 1]
                             if ox * ox + oy * oy > lim2:
                                 continue
-                        frac = _lit_fraction(u0, v0, centres[lens, 0], centres[lens, 1], sx, sy, c,
-                                             normals, half_sq, neigh_u, neigh_s, sub, r_ap2)
+                            # Away from the rim every point of the pixel's footprint sees the
+                            # aperture: where the footprint's rays (within |c| s_max of the
+                            # central one) are all inside or all outside the cell, the fraction
+                            # is 1 or 0 without testing each point.
+                            frac = _footprint_in_cell(ox, oy, abs(c) * s_max * pitch, normals, half_sq)
+                            if frac < 0.0:
+                                frac = _lit_fraction(u0, v0, centres[lens, 0], centres[lens, 1], sx, sy, c,
+                                                     normals, half_sq, neigh_u, neigh_s, sub, r_ap2)
+                        else:
+                            # Near the rim, points of the footprint may also see a neighbour's
+                            # aperture (crosstalk): skip when no ray reaches this cell or those.
+                            ox = sx + c * u0 - centres[lens, 0]
+                            oy = sy + c * v0 - centres[lens, 1]
+                            if _unreachable(ox, oy, c, abs(c) * s_max * pitch, normals, half_sq, neigh_u, neigh_s):
+                                continue
+                            frac = _lit_fraction(u0, v0, centres[lens, 0], centres[lens, 1], sx, sy, c,
+                                                 normals, half_sq, neigh_u, neigh_s, sub, r_ap2)
                         if frac > 0.0:
                             s_vf += values[j] * frac
                             s_ff += frac * frac
@@ -404,6 +426,36 @@ def _fit_one(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, n_la
     out[4] = lit[best]
     out[5] = np.sqrt(max(costs[best], 0.0) / max(m, 1)) / i0
     out[6] = np.sqrt(max(mc2 / wsum - mc * mc, 0.0))
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _footprint_in_cell(ox, oy, margin, normals, half_sq):
+    """1 if a disk of ``margin / pitch`` around offset ``(ox, oy)`` from a lens centre lies in its
+    cell, 0 if it lies outside, -1 if it straddles the border (``margin`` = radius x pitch, the
+    length of the cell's normals)."""
+    inside = 1.0
+    for t in range(3):
+        d = abs(ox * normals[t, 0] + oy * normals[t, 1])
+        if d - margin > half_sq[t]:
+            return 0.0
+        if d + margin > half_sq[t]:
+            inside = -1.0
+    return inside
+
+
+@numba.njit(cache=True, fastmath=_FASTMATH)
+def _unreachable(ox, oy, c, margin, normals, half_sq, neigh_u, neigh_s):
+    """True when no point of a pixel's footprint (ray offset ``(ox, oy)`` from its lens centre,
+    spread by ``margin`` as in :func:`_footprint_in_cell`) can be lit: its rays miss the cell, and
+    so do those of the neighbours' aperture points it sees by crosstalk (offset by
+    ``c neigh_u - neigh_s`` from the neighbour's centre)."""
+    if _footprint_in_cell(ox, oy, margin, normals, half_sq) != 0.0:
+        return False
+    for nb in range(6):
+        if _footprint_in_cell(ox + c * neigh_u[nb, 0] - neigh_s[nb, 0], oy + c * neigh_u[nb, 1] - neigh_s[nb, 1],
+                              margin, normals, half_sq) != 0.0:
+            return False
+    return True
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)

@@ -76,3 +76,33 @@ def test_empty_start_list():
     fit = fit_rays(np.zeros((64, 64), np.uint16), table, np.empty(0), np.empty(0), np.empty(0), background=0.0,
                    aperture_per_lens_plane=641.0)
     assert len(fit) == 0
+
+
+@pytest.mark.parametrize("blur, offset", [(1.1, (0.08, 0.03)), (1.1, (0.0, 0.1)), (1.1, (0.15, 0.0)), (1.0, (0.15, 0.0))])
+def test_fit_tells_in_front_of_focus_from_behind(blur, offset):
+    """A blur of about one pitch spills a sliver of light into the neighbouring lenses; which side
+    of their micro-images it lights flips with the sign of the defocus (the aperture maps onto
+    the MLA mirrored), so the fit recovers the sign and size instead of averaging the two."""
+    from analysis.camera_model import CameraModel
+    from analysis.lightfield import build_table_from_model
+    from analysis.scenarios import Particles
+    from analysis.sim_camera import simulated_camera_metadata
+    from analysis.simulate import particle_truth, render_exposure, white_coverage
+
+    model = CameraModel.from_metadata(simulated_camera_metadata(size=480))
+    optics = model.optics
+    table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
+    s_hat = offset[0] * table.basis_m[:, 0] + offset[1] * table.basis_m[:, 1]  # near the central lens
+    for sign in (1.0, -1.0):
+        c = sign * blur * optics.lens_pitch_m / optics.aperture_diameter_m  # c = 1 - 1/alpha
+        z = float(optics.z_of_alpha(1.0 / (1.0 - c)))
+        one = Particles(np.array([s_hat[0] * z / optics.exit_pupil_m]), np.array([s_hat[1] * z / optics.exit_pupil_m]),
+                        np.array([z]), np.array([1800.0]))
+        assert particle_truth(model, one).blur_pitches[0] == pytest.approx(blur, rel=1e-3)
+        image = render_exposure(model, one, seed=3)
+        # Start at focus: the brightness of a refocused stack cannot tell the two signs apart.
+        fit = fit_rays(image, table, s_hat[:1], s_hat[1:], np.ones(1), background=0.0,
+                       aperture_per_lens_plane=aperture_per_lens_plane(optics), n_alpha=17)
+        c_fit = 1.0 - 1.0 / fit.alpha[0]
+        # Averaging the two signs' minima gives about 0; the sign and most of the size must come back.
+        assert c_fit / c > 0.5, (sign, c_fit, c)
