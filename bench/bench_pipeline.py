@@ -38,7 +38,8 @@ import numpy as np  # noqa: E402
 from analysis.accuracy import BLUR_BINS, Score, score  # noqa: E402
 from analysis.calibration import load_calibration  # noqa: E402
 from analysis.exposure import read_exposure  # noqa: E402
-from analysis.pipeline import PipelineParams, process, read_csv, warm_up  # noqa: E402
+from analysis.particle_table import read_csv  # noqa: E402
+from analysis.pipeline import PipelineParams, process, warm_up  # noqa: E402
 
 TARGETS = {
     "tilted-layer": dict(recall=0.98, precision=0.95, depth_fit=0.035, depth_abs=0.05, lateral=0.015),

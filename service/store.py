@@ -29,10 +29,9 @@ import h5py
 import numpy as np
 
 from analysis.atomic_write import atomic_path, write_all_atomic
+from analysis.particle_table import UNITS
 from service.database import Database
 from service.results import JobOutput
-
-LENGTH_UNITS = {"x": "pixel", "y": "pixel", "X": "mm", "Y": "mm", "Z": "mm"}
 
 
 @dataclass(frozen=True)
@@ -318,8 +317,8 @@ def write_table(group: h5py.Group, columns: Mapping[str, np.ndarray]) -> None:
             ds = group.create_dataset(name, data=data, dtype=h5py.string_dtype())
         else:
             ds = group.create_dataset(name, data=data)
-        if name in LENGTH_UNITS:
-            ds.attrs["units"] = LENGTH_UNITS[name]
+        if name in UNITS:
+            ds.attrs["units"] = UNITS[name]
 
 
 def read_table(group: h5py.Group) -> dict[str, np.ndarray]:

@@ -13,7 +13,8 @@ from analysis.errors import ParameterError
 from analysis.exposure import read_exposure
 from analysis.maxima import find_maxima
 from analysis.moments import detect
-from analysis.pipeline import PipelineParams, process, read_csv
+from analysis.particle_table import read_csv
+from analysis.pipeline import PipelineParams, process
 from analysis.simulate import write_scenario
 
 # A sensor crop that holds most of the 150-particle ball (about 130 particles): a few seconds.

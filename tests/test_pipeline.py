@@ -14,7 +14,8 @@ from analysis.accuracy import score
 from analysis.calibration import load_calibration
 from analysis.errors import CameraMismatchError, ParameterError
 from analysis.exposure import Exposure, read_exposure
-from analysis.pipeline import COLUMNS, PipelineParams, process, process_many, read_csv, read_hdf5_columns
+from analysis.particle_table import COLUMNS, read_csv, read_hdf5_columns
+from analysis.pipeline import PipelineParams, process, process_many
 from analysis.simulate import write_scenario
 
 # A sensor crop of the paper's tilted layer: about a dozen particles, a few seconds to simulate.

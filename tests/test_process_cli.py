@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from analysis.accuracy import score
-from analysis.pipeline import COLUMNS, read_csv
+from analysis.particle_table import COLUMNS, read_csv
 from service.cli.main import main
 
 SIZE = 900

@@ -9,7 +9,8 @@ import pytest
 
 from analysis.calibration import load_calibration
 from analysis.exposure import read_exposure
-from analysis.pipeline import FIT_TABLE_RIM_PX, get_table, read_csv
+from analysis.particle_table import read_csv
+from analysis.pipeline import FIT_TABLE_RIM_PX, get_table
 from analysis.ray_depth import aperture_per_lens_plane, fit_rays
 from analysis.refocus import select_samples
 from analysis.simulate import write_scenario

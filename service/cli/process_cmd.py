@@ -143,7 +143,8 @@ class _Calibrations:
 
 def run(args: argparse.Namespace) -> int:
     from analysis.exposure import read_exposure
-    from analysis.pipeline import combine, process, write_csv, write_hdf5
+    from analysis.particle_table import combine, write_csv, write_hdf5
+    from analysis.pipeline import process
 
     try:
         params = params_from_args(args)

@@ -28,7 +28,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from analysis.coordinates import validate_plane
-    from analysis.pipeline import read_csv, read_hdf5_columns
+    from analysis.particle_table import read_csv, read_hdf5_columns
 
     try:
         columns = (read_csv(args.table) if args.table.suffix.lower() == ".csv"
