@@ -2,20 +2,16 @@
 
 from __future__ import annotations
 
-import json
 
 import numpy as np
 import pytest
 
 from analysis.accuracy import score
-from analysis.calibration import load_calibration
 from analysis.errors import ParameterError
-from analysis.exposure import read_exposure
 from analysis.maxima import find_maxima
 from analysis.moments import detect
-from analysis.particle_table import read_csv
 from analysis.pipeline import PipelineParams, process
-from analysis.simulate import write_scenario
+from simulated_case import simulated_case
 
 # A sensor crop that holds most of the 150-particle ball (about 130 particles): a few seconds.
 SIZE = 700
@@ -23,15 +19,8 @@ SIZE = 700
 
 @pytest.fixture(scope="module")
 def ball(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("ball")
-    write_scenario(folder, "ball", 1, size=SIZE)
-    exposure = read_exposure(folder / "IMG_0001.lfp")
-    cache = folder / "cache"
-    calibration = load_calibration(folder / "calibration", exposure.metadata, serial=exposure.serial,
-                                   cache_dir=cache)
-    truth = read_csv(folder / "IMG_0001.truth.csv")
-    nn = json.loads((folder / "scenario.json").read_text())["exposures"][0]["mean_nn_distance_mm"]
-    return exposure, calibration, truth, nn, cache
+    c = simulated_case(tmp_path_factory.mktemp("ball"), "ball", 1, size=SIZE)
+    return c.exposure, c.calibration, c.truth, c.nn_mm, c.cache
 
 
 def test_crowded_ball_found(ball):

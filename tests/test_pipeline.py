@@ -11,12 +11,11 @@ import numpy as np
 import pytest
 
 from analysis.accuracy import score
-from analysis.calibration import load_calibration
 from analysis.errors import CameraMismatchError, ParameterError
-from analysis.exposure import Exposure, read_exposure
+from analysis.exposure import Exposure
 from analysis.particle_table import COLUMNS, read_csv, read_hdf5_columns
 from analysis.pipeline import PipelineParams, process, process_many
-from analysis.simulate import write_scenario
+from simulated_case import simulated_case
 
 # A sensor crop of the paper's tilted layer: about a dozen particles, a few seconds to simulate.
 SIZE = 1000
@@ -24,15 +23,8 @@ SIZE = 1000
 
 @pytest.fixture(scope="module")
 def layer(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("layer")
-    write_scenario(folder, "tilted-layer", 3, size=SIZE)
-    exposure = read_exposure(folder / "IMG_0001.lfp")
-    cache = folder / "cache"
-    calibration = load_calibration(folder / "calibration", exposure.metadata, serial=exposure.serial,
-                                   cache_dir=cache)
-    truth = read_csv(folder / "IMG_0001.truth.csv")
-    nn = json.loads((folder / "scenario.json").read_text())["exposures"][0]["mean_nn_distance_mm"]
-    return folder, exposure, calibration, truth, nn, cache
+    c = simulated_case(tmp_path_factory.mktemp("layer"), "tilted-layer", 3, size=SIZE)
+    return c.folder, c.exposure, c.calibration, c.truth, c.nn_mm, c.cache
 
 
 @pytest.fixture(scope="module")
@@ -167,11 +159,8 @@ def test_batch_shares_calibration(layer):
 
 def test_shadowing_pairs_become_two_particles(tmp_path):
     """Pairs on one line of sight at different depths (the paper's multiple maxima) are separated."""
-    write_scenario(tmp_path, "shadowing", 1, size=1200)
-    exposure = read_exposure(tmp_path / "IMG_0001.lfp")
-    calibration = load_calibration(tmp_path / "calibration", exposure.metadata, serial=exposure.serial)
-    truth = read_csv(tmp_path / "IMG_0001.truth.csv")
-    nn = json.loads((tmp_path / "scenario.json").read_text())["exposures"][0]["mean_nn_distance_mm"]
+    c = simulated_case(tmp_path, "shadowing", 1, size=1200)
+    exposure, calibration, truth, nn = c.exposure, c.calibration, c.truth, c.nn_mm
     result = process(exposure, calibration)
     s = score(result.particles, truth, nn_mm=nn)
     assert s.pairs_total >= 3 and s.pairs_separated == s.pairs_total

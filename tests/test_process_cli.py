@@ -12,6 +12,7 @@ import pytest
 from analysis.accuracy import score
 from analysis.particle_table import COLUMNS, read_csv
 from service.cli.main import main
+from simulated_case import mean_nn_mm
 
 SIZE = 900
 
@@ -40,7 +41,7 @@ def test_process_one_exposure_to_csv(sim, tmp_path, capsys):
     assert set(COLUMNS) == set(table)
     assert summary["exposures"][0]["particles"] == table["x"].size > 0
     truth = read_csv(sim / "IMG_0001.truth.csv")
-    nn = json.loads((sim / "scenario.json").read_text())["exposures"][0]["mean_nn_distance_mm"]
+    nn = mean_nn_mm(sim)
     s = score(table, truth, nn_mm=nn)
     assert s.recall >= 0.85 and s.precision >= 0.85 and s.depth_abs_rms_over_nn < 0.2
     # The camera's own .RAW + .TXT pair gives the same particles as the .lfp.

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 
 import numpy as np
 import pytest
@@ -14,6 +13,7 @@ from analysis.pipeline import FIT_TABLE_RIM_PX, get_table
 from analysis.ray_depth import aperture_per_lens_plane, fit_rays
 from analysis.refocus import select_samples
 from analysis.simulate import write_scenario
+from simulated_case import mean_nn_mm
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +24,7 @@ def scene(tmp_path_factory):
     calibration = load_calibration(folder / "calibration", exposure.metadata, serial=exposure.serial)
     table = get_table(calibration, rim_px=FIT_TABLE_RIM_PX)
     truth = read_csv(folder / "IMG_0001.truth.csv")
-    nn = json.loads((folder / "scenario.json").read_text())["exposures"][0]["mean_nn_distance_mm"]
+    nn = mean_nn_mm(folder)
     p_m = exposure.model.optics.exit_pupil_m
     s_hat = np.column_stack([truth["X"], truth["Y"]]) * p_m / truth["Z"][:, None]  # metres, shared magnification
     noise = select_samples(exposure.image, get_table(calibration))
