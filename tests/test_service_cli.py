@@ -8,7 +8,7 @@ from service.cli.main import main
 
 
 @pytest.mark.parametrize(("argv", "message"), [
-    (["--camera", "firewire"], "camera 'firewire': use usb, wifi:HOST, simulated:DIR or none"),
+    (["--camera", "firewire"], "camera 'firewire': use usb, wifi:HOST[:PORT], simulated:DIR or none"),
     (["--executor", "spark://x"], "use local or dask://HOST:PORT"),
     (["--run", "../etc"], "run name '../etc'"),
     (["--workers", "0"], "workers"),
