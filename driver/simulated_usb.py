@@ -87,11 +87,7 @@ class SimulatedBackend(usb.backend.IBackend):
                  camera: SimulatedCamera | None = None, kernel_driver_active: bool = True,
                  **camera_settings) -> None:
         super().__init__()
-        if camera is None:
-            if folder is None:
-                raise ValueError("give the simulated camera a folder or a SimulatedCamera")
-            camera = SimulatedCamera(folder, **camera_settings)
-        self.camera = camera
+        self.camera = SimulatedCamera.of(folder, camera, **camera_settings)
         self.faults = FaultPlan()
         self.gone = False
         self.kernel_driver_active = {p.INTERFACE: kernel_driver_active}

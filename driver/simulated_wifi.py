@@ -56,11 +56,7 @@ class SimulatedWifiServer:
     def __init__(self, folder: str | os.PathLike | CameraFolder | None = None, *,
                  camera: SimulatedCamera | None = None, host: str = "127.0.0.1", port: int = 0,
                  callback_port: int = 0, **camera_settings) -> None:
-        if camera is None:
-            if folder is None:
-                raise ValueError("give the simulated camera a folder or a SimulatedCamera")
-            camera = SimulatedCamera(folder, **camera_settings)
-        self.camera = camera
+        self.camera = SimulatedCamera.of(folder, camera, **camera_settings)
         self.faults = FaultPlan()
         self.host = host
         self._lock = threading.Lock()
