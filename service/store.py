@@ -6,22 +6,28 @@ Layout::
     DATA/raw/ab/<sha1>.lfp                an uploaded .lfp, or
     DATA/raw/ab/<sha1>.RAW, .TXT          a camera .RAW + .TXT pair
     DATA/results/ab/<sha1>.h5             one exposure's particle table, curves, slices
-    DATA/runs/<run>.nxs                   every exposure of a run (NeXus: NXentry/NXdata)
+    DATA/runs/<run>.nxs                   every exposure of a run (NeXus: NXentry/NXdata),
+                                          grown by appending (see service.run_file)
     DATA/calibrations/<serial>/MOD_*      white images per camera
     DATA/cache/                           calibration cache
 
-Every file is written to a temporary name and renamed into place, so a crash leaves
-either the old file or the new one.
+Every file but a run file is written to a temporary name and renamed into place, so a crash
+leaves either the old file or the new one. A run file is appended to in place under a lock, and
+rebuilt from the result files (the source of truth, with the index) if a crash interrupted that.
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
+import logging
 import os
 import sqlite3
+import tempfile
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,9 +35,14 @@ import h5py
 import numpy as np
 
 from analysis.atomic_write import atomic_path, write_all_atomic
-from analysis.particle_table import UNITS
+from service import run_file
 from service.database import Database
+from service.nexus import nx_group, read_table, write_process, write_table
 from service.results import JobOutput
+
+__all__ = ["ExposureRecord", "Store", "nx_group", "read_table", "write_table"]
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -129,7 +140,7 @@ class Store:
                 entry["run"] = record.run
                 entry["frame"] = record.frame
                 write_table(nx_group(entry, "data", "NXdata"), output.columns)
-                _write_process(entry, output.parameters)
+                write_process(entry, output.parameters)
                 if "provenance" in output.extra:
                     entry["process"]["provenance"] = json.dumps(output.extra["provenance"], default=str)
                 if output.curves is not None and output.curve_alpha is not None:
@@ -209,37 +220,80 @@ class Store:
         with self._locks_lock:
             return self._run_locks.setdefault(run, threading.Lock())
 
-    def update_run_file(self, record: ExposureRecord, output: JobOutput | None) -> None:
+    @contextmanager
+    def _run_guard(self, run: str) -> Iterator[None]:
+        """Hold a run file: a thread lock within this process, an ``flock`` across processes
+        sharing the data folder (a run file is changed in place, so writers must not overlap)."""
+        with self._run_lock(run):
+            fd = os.open(self.runs_dir / f".{run}.lock", os.O_CREAT | os.O_RDWR, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX)
+                yield
+            finally:
+                os.close(fd)  # releases the flock
+
+    def update_run_file(self, record: ExposureRecord, output: JobOutput | None) -> str:
         """Put one exposure's rows into its run file (replacing earlier ones), or remove them.
 
-        Idempotent: a job that runs again after a crash replaces its own rows.
+        Idempotent: a job that runs again after a crash replaces its own rows. The next frame
+        of a run is appended in place, at a cost that does not grow with the run; see
+        :mod:`service.run_file` for the rest. Returns how the file was changed
+        (``"in place"``, ``"rewritten"``, ``"rebuilt"``).
         """
-        with self._run_lock(record.run):
-            path = self.run_path(record.run)
-            table, exposures = _read_run(path) if path.exists() else ({}, [])
-            keep = table.get("frame", np.zeros(0, np.int64)) != record.frame
-            table = {name: column[keep] for name, column in table.items()}
-            exposures = [e for e in exposures if e["frame"] != record.frame]
-            if output is not None:
-                rows = dict(output.columns)
-                rows["frame"] = np.full(output.particles, record.frame, dtype=np.int64)
-                table = _concat_tables(table, rows)
-                exposures.append({"id": record.id, "frame": record.frame, "particles": output.particles,
-                                  "parameters": output.parameters})
-                exposures.sort(key=lambda e: e["frame"])
-            order = np.argsort(table["frame"], kind="stable") if "frame" in table else None
-            if order is not None:
-                table = {name: column[order] for name, column in table.items()}
-            with atomic_path(path) as tmp:
-                _write_run(tmp, record.run, table, exposures)
+        rows = None if output is None else run_file.frame_rows(output.columns, record.frame)
+        with self._run_guard(record.run):
+            return run_file.put_frame(self.run_path(record.run), record.run, record.frame, record.id, rows,
+                                      output.parameters if output is not None else {},
+                                      lambda: self.run_from_results(record.run))
 
     def read_run_columns(self, run: str) -> dict[str, np.ndarray] | None:
         """All particles of a run with a ``frame`` column, or None for an unknown run."""
         path = self.run_path(run)
-        if not path.exists():
+        if not path.exists() and not run_file.marker_path(path).exists():
             return None
-        with self._run_lock(run):
-            return _read_run(path)[0]
+        with self._run_guard(run):
+            run_file.repair(path, run, lambda: self.run_from_results(run))
+            return run_file.read_run_table(path) if path.exists() else None
+
+    def run_file_snapshot(self, run: str) -> Path | None:
+        """A private copy of the run file for serving (appends change the file in place), or
+        None if the run has none yet. The caller deletes it."""
+        path = self.run_path(run)
+        if not path.exists() and not run_file.marker_path(path).exists():
+            return None
+        fd, name = tempfile.mkstemp(prefix=f".{run}.", suffix=".nxs", dir=self.cache_dir)
+        os.close(fd)
+        copy = Path(name)
+        try:
+            with self._run_guard(run):
+                run_file.repair(path, run, lambda: self.run_from_results(run))
+                if not path.exists():
+                    copy.unlink()
+                    return None
+                run_file.copy_run_file(path, copy)
+        except BaseException:
+            copy.unlink(missing_ok=True)
+            raise
+        return copy
+
+    def run_from_results(self, run: str) -> run_file.RunContents:
+        """A run as its indexed result files record it: what a damaged run file is rebuilt from."""
+        rows = self.db.read("SELECT exposure_id, frame FROM results WHERE run = ? ORDER BY frame", (run,))
+        tables, exposures = [], []
+        for row in rows:
+            try:
+                columns = self.read_columns(row["exposure_id"])
+                parameters = self.read_parameters(row["exposure_id"])
+            except (OSError, KeyError, ValueError) as exc:
+                log.warning("run %s: the result of frame %d (%s) cannot be read (%s); the run file will "
+                            "lack it until the exposure is processed again", run, row["frame"],
+                            row["exposure_id"], exc)
+                continue
+            table = run_file.frame_rows(columns, row["frame"])
+            tables.append(table)
+            exposures.append({"id": row["exposure_id"], "frame": row["frame"], "particles": len(table["frame"]),
+                              "parameters": parameters})
+        return run_file.RunContents(run_file.concat_tables(tables), exposures)
 
     def runs(self) -> list[dict]:
         """Each run with its exposure count and job states."""
@@ -298,93 +352,3 @@ class Store:
 def _safe_name(name: str) -> str:
     cleaned = "".join(c if c.isalnum() or c in "._-" else "_" for c in name)
     return cleaned.lstrip(".") or "unnamed"
-
-
-def nx_group(parent: h5py.Group, name: str, nx_class: str) -> h5py.Group:
-    group = parent.create_group(name)
-    group.attrs["NX_class"] = nx_class
-    return group
-
-
-def write_table(group: h5py.Group, columns: Mapping[str, np.ndarray]) -> None:
-    names = list(columns)
-    group.attrs["signal"] = "Z" if "Z" in columns else (names[0] if names else "")
-    group.attrs["columns"] = json.dumps(names)
-    for name in names:
-        data = np.asarray(columns[name])
-        if data.dtype.kind == "U":
-            data = data.astype(object)
-            ds = group.create_dataset(name, data=data, dtype=h5py.string_dtype())
-        else:
-            ds = group.create_dataset(name, data=data)
-        if name in UNITS:
-            ds.attrs["units"] = UNITS[name]
-
-
-def read_table(group: h5py.Group) -> dict[str, np.ndarray]:
-    names = json.loads(group.attrs["columns"])
-    out = {}
-    for name in names:
-        data = group[name][()]
-        if data.dtype.kind == "O":
-            data = np.array([v.decode() if isinstance(v, bytes) else v for v in data], dtype=str)
-        out[name] = data
-    return out
-
-
-def _write_process(entry: h5py.Group, parameters: dict) -> None:
-    process = nx_group(entry, "process", "NXprocess")
-    process["program"] = "plenodust"
-    from importlib.metadata import PackageNotFoundError, version
-    try:
-        process["version"] = version("plenodust")
-    except PackageNotFoundError:
-        process["version"] = "unknown"
-    process["parameters"] = json.dumps(parameters, sort_keys=True, default=str)
-
-
-def _concat_tables(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    if not a:
-        return {k: np.asarray(v) for k, v in b.items()}
-    n_a = len(next(iter(a.values())))
-    n_b = len(next(iter(b.values()))) if b else 0
-    names = list(a) + [k for k in b if k not in a]
-    out = {}
-    for name in names:
-        parts = []
-        for table, n in ((a, n_a), (b, n_b)):
-            if name in table:
-                parts.append(np.asarray(table[name]))
-            else:
-                # A column one frame lacks is missing data there, not zero.
-                parts.append(np.full(n, np.nan))
-        out[name] = np.concatenate(parts)
-    return out
-
-
-def _write_run(path: Path, run: str, table: dict[str, np.ndarray], exposures: list[dict]) -> None:
-    with h5py.File(path, "w") as f:
-        f.attrs["default"] = "entry"
-        f.attrs["creator"] = "plenodust"
-        entry = nx_group(f, "entry", "NXentry")
-        entry.attrs["default"] = "data"
-        entry["title"] = run
-        write_table(nx_group(entry, "data", "NXdata"), table)
-        _write_process(entry, exposures[-1]["parameters"] if exposures else {})
-        coll = nx_group(entry, "exposures", "NXcollection")
-        coll.create_dataset("id", data=np.array([e["id"] for e in exposures], dtype="S40"))
-        coll.create_dataset("frame", data=np.array([e["frame"] for e in exposures], dtype=np.int64))
-        coll.create_dataset("particles", data=np.array([e["particles"] for e in exposures], dtype=np.int64))
-        coll.create_dataset("parameters", data=np.array(
-            [json.dumps(e["parameters"], sort_keys=True, default=str) for e in exposures], dtype=object),
-            dtype=h5py.string_dtype())
-
-
-def _read_run(path: Path) -> tuple[dict[str, np.ndarray], list[dict]]:
-    with h5py.File(path, "r") as f:
-        table = read_table(f["entry/data"])
-        coll = f["entry/exposures"]
-        exposures = [{"id": i.decode(), "frame": int(fr), "particles": int(n), "parameters": json.loads(p)}
-                     for i, fr, n, p in zip(coll["id"][()], coll["frame"][()], coll["particles"][()],
-                                            coll["parameters"][()], strict=True)]
-    return table, exposures

@@ -6,6 +6,7 @@ import asyncio
 
 from fastapi import APIRouter, Body, Request
 from fastapi.responses import FileResponse, Response
+from starlette.background import BackgroundTask
 
 from service.deps import ApiKey, State
 from service.problems import Problem
@@ -52,11 +53,13 @@ async def run_particles(run: str, request: Request, state: State, format: TableF
     fmt = choose_format(request, format)
     _known_run(state, run)
     if fmt == "h5":
-        path = state.store.run_path(run)
-        if not path.exists():
+        # The run file itself (NeXus, with the parameters of every frame), copied under the run's
+        # lock: appends change it in place, so streaming it directly could send half of one.
+        copy = await asyncio.to_thread(state.store.run_file_snapshot, run)
+        if copy is None:
             raise Problem(409, "No result yet", f"run {run!r} has no processed exposure yet", kind="no-result")
-        # The run file itself: NeXus, with the parameters of every frame.
-        return FileResponse(path, media_type="application/x-hdf5", filename=f"{run}.nxs")
+        return FileResponse(copy, media_type="application/x-hdf5", filename=f"{run}.nxs",
+                            background=BackgroundTask(copy.unlink, missing_ok=True))
     columns = await asyncio.to_thread(state.store.read_run_columns, run)
     if columns is None:
         raise Problem(409, "No result yet", f"run {run!r} has no processed exposure yet", kind="no-result")
