@@ -297,6 +297,8 @@ def _bookkeeping(f: h5py.File) -> _Bookkeeping:
         if "frame" not in names or len(lengths) != 1 or len(next(iter(lengths))) != 1:
             raise RunFileDamaged(f"columns {names} have shapes {sorted(lengths)}")
         rows = columns[0].shape[0]
+        if "parameters" not in f["entry/process"]:
+            raise RunFileDamaged("entry/process lacks its parameters")
         missing = [name for name in ("id", "frame", "particles", "parameters") if name not in coll]
         if missing:
             raise RunFileDamaged(f"the exposures collection lacks {missing}")
@@ -339,12 +341,15 @@ def _splice_in_place(path: Path, frame: int, exposure_id: str, rows: Mapping[str
         if rows is None and not present:
             return True  # removing a frame that is not there changes nothing
         cut = int(book.first_row[p]) if p < k else book.rows
-        try:
-            data, coll = f["entry/data"], f["entry/exposures"]
-            tail = _read_rows(data, book.names, cut)
-            tail_exposures = _read_exposures(coll, p)
-        except _DAMAGE as exc:
-            raise RunFileDamaged(f"{type(exc).__name__}: {exc}") from exc
+        data, coll = f["entry/data"], f["entry/exposures"]
+        tail: dict[str, np.ndarray] = {}
+        tail_exposures: list[dict] = []
+        if p < k:  # not the usual next frame: the later frames are read to be written back
+            try:
+                tail = _read_rows(data, book.names, cut)
+                tail_exposures = _read_exposures(coll, p)
+            except _DAMAGE as exc:
+                raise RunFileDamaged(f"{type(exc).__name__}: {exc}") from exc
         if present:
             keep = tail["frame"] != frame
             tail = {name: column[keep] for name, column in tail.items()}

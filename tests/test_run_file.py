@@ -351,3 +351,20 @@ def test_a_writer_killed_mid_run_loses_nothing(tmp_path: Path, delay_s: float) -
         assert list(store.read_run_columns("k")["frame"][-3:]) == [record.frame] * 3
     finally:
         db.close()
+
+
+def test_a_snapshot_is_a_whole_copy_that_later_appends_leave_alone(store: Store) -> None:
+    assert store.run_file_snapshot("r") is None
+    records = [_record(store, f) for f in range(4)]
+    outputs = {f: _output(f, 3) for f in range(3)}
+    for f in range(3):
+        _finish(store, records[f], outputs[f])
+    copy = store.run_file_snapshot("r")
+    try:
+        assert copy.parent == store.cache_dir
+        store.update_run_file(records[3], _output(3, 5))
+        with h5py.File(copy, "r") as f:
+            np.testing.assert_array_equal(f["entry/data/Z"][()], _expected(outputs)["Z"])
+            assert list(f["entry/exposures/frame"][()]) == [0, 1, 2]
+    finally:
+        copy.unlink()
