@@ -46,6 +46,7 @@ from scipy.spatial import cKDTree
 from .calibration import Calibration
 from .camera_model import CameraModel
 from .coordinates import Calibration3D, ThinLensCalibration, UserCalibration, to_physical
+from .depth_prior import neighbour_prior
 from .depth import Peaks, Tracks, find_depth_peaks, link_tracks, merge_duplicates, unique_indices
 from .errors import CameraMismatchError, MetadataError, ParameterError
 from .exposure import Exposure
@@ -107,6 +108,14 @@ class PipelineParams:
         positions per side in both passes. Near focus depth and position are coupled (how the
         light splits between lenses), so positions every 0.2 pitch beat more depths: 5 x 5 and 17
         lower the depth error by a sixth (ball by a quarter) for about 1.5x the fit's time.
+    deblend
+        Refit every particle with its neighbours' fitted light taken off its pixels
+        (:func:`deblend`): in crowds their blurs overlap and pull each other's fits.
+    depth_prior
+        Where a particle's pixels leave its depth open (its light falls in one micro-lens) and its
+        neighbours lie on one surface, take the depth that surface predicts as a prior
+        (:func:`apply_depth_prior`, :mod:`analysis.depth_prior`). Off in a 3D crowd by itself;
+        turn it off to measure out-of-surface motion of such particles from their pixels alone.
     merge_slices
         Refined particles closer than ``link_radius_px`` in the image and this many slices in alpha
         are one particle (the brighter kept): candidates of one particle converge there.
@@ -148,6 +157,8 @@ class PipelineParams:
     merge_slices: float = 4.0
     fit_depths: int = 17
     fit_lateral: int = 5
+    deblend: bool = True
+    depth_prior: bool = True
     pixel_size_mm: float | None = None
     depth_per_alpha_mm: float | None = None
     reference_alpha: float = 1.0
@@ -625,6 +636,21 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                             brightness=np.vstack([tracks.brightness, new_tracks.brightness]))
             peaks, fit = both.take(kept), _take_fit(both_fit, kept)
         timings["more_passes"] = time.perf_counter() - t
+        if params.deblend and len(peaks) > 1:
+            t = time.perf_counter()
+            peaks, fit = deblend(exposure.image, fit_table, grid, peaks, fit, background=samples.background,
+                                 aperture_per_lens_plane=aperture_per_lens_plane(calibration.model.optics),
+                                 alpha_half_range=params.refine_alpha_range, fit_depths=params.fit_depths,
+                                 fit_lateral=params.fit_lateral)
+            timings["deblend"] = time.perf_counter() - t
+        if params.depth_prior and len(peaks) > 1:
+            t = time.perf_counter()
+            peaks, fit = apply_depth_prior(exposure.image, fit_table, grid, peaks, fit,
+                                           background=samples.background,
+                                           aperture_per_lens_plane=aperture_per_lens_plane(calibration.model.optics),
+                                           alpha_half_range=params.refine_alpha_range, fit_depths=params.fit_depths,
+                                           fit_lateral=params.fit_lateral)
+            timings["depth_prior"] = time.perf_counter() - t
     report(0.9)
     if len(peaks) == 0:
         if len(tracks):
@@ -694,6 +720,58 @@ def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, pea
             kept = unique_indices(both, radius_px=merge_radius_px, alpha_tolerance=merge_alpha, priority=priority)
             refined, fit = both.take(kept), _take_fit(both_fit, kept)
     return refined, fit
+
+
+def deblend(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, peaks: Peaks, fit: RayFit, *,
+            background: float, aperture_per_lens_plane: float, alpha_half_range: float, fit_depths: int,
+            fit_lateral: int) -> tuple[Peaks, RayFit]:
+    """Refit every particle with its neighbours' fitted light taken off its pixels.
+
+    Each first fit saw its neighbours' light too (crowds: the blurs of particles a pitch or two
+    apart overlap), which pulls position and depth; the refit starts from the first fit. A
+    particle whose refit finds no light of its own keeps its first fit.
+    """
+    explained = render_fits(table, fit, aperture_per_lens_plane=aperture_per_lens_plane)
+    new = fit_rays(image, table, fit.sx_m, fit.sy_m, fit.alpha, background=background,
+                   aperture_per_lens_plane=aperture_per_lens_plane, alpha_half_range=alpha_half_range,
+                   subtract=explained, own=fit, n_alpha=fit_depths, coarse_lateral=fit_lateral,
+                   fine=_fine_grid(fit_lateral))
+    ok = np.flatnonzero(new.intensity > 0)
+    return _replace_fits(peaks, fit, grid, ok, new, ok)
+
+
+def apply_depth_prior(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, peaks: Peaks, fit: RayFit, *,
+                      background: float, aperture_per_lens_plane: float, alpha_half_range: float,
+                      fit_depths: int, fit_lateral: int) -> tuple[Peaks, RayFit]:
+    """Refit the particles whose pixels leave the depth open, with their neighbours' surface as prior.
+
+    Only where the prior is narrower than the spread the pixels allow
+    (:func:`analysis.depth_prior.neighbour_prior`); the others keep their fit.
+    """
+    prior = neighbour_prior(peaks.x, peaks.y, fit.alpha, fit.alpha_spread)
+    todo = np.flatnonzero(np.isfinite(prior.sigma) & (fit.alpha_spread > prior.sigma))
+    log.debug("depth prior: %d of %d particles refitted", todo.size, len(peaks))
+    if todo.size == 0:
+        return peaks, fit
+    explained = render_fits(table, fit, aperture_per_lens_plane=aperture_per_lens_plane)
+    sub = _take_fit(fit, todo)
+    new = fit_rays(image, table, sub.sx_m, sub.sy_m, sub.alpha, background=background,
+                   aperture_per_lens_plane=aperture_per_lens_plane, alpha_half_range=alpha_half_range,
+                   subtract=explained, own=sub, n_alpha=fit_depths, coarse_lateral=fit_lateral,
+                   fine=_fine_grid(fit_lateral), prior_alpha=prior.alpha[todo], prior_sigma=prior.sigma[todo])
+    return _replace_fits(peaks, fit, grid, todo[new.intensity > 0], new, np.flatnonzero(new.intensity > 0))
+
+
+def _replace_fits(peaks: Peaks, fit: RayFit, grid: ImageGrid, rows: np.ndarray, new: RayFit, new_rows: np.ndarray
+                  ) -> tuple[Peaks, RayFit]:
+    """``fit`` with ``rows`` replaced by ``new[new_rows]``, and the peaks moved to match."""
+    merged = RayFit(**{name: getattr(fit, name).copy() for name in fit.__dataclass_fields__})
+    for name in fit.__dataclass_fields__:
+        getattr(merged, name)[rows] = getattr(new, name)[new_rows]
+    x, y = grid.to_pixels(merged.sx_m, merged.sy_m)
+    moved = dataclasses.replace(peaks, x=np.asarray(x, float), y=np.asarray(y, float), alpha=merged.alpha,
+                                residual=merged.residual)
+    return moved, merged
 
 
 def _fine_grid(lateral: int) -> tuple[int, float, int, int]:

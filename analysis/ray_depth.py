@@ -147,13 +147,37 @@ def render_fits(table: LightFieldTable, fit: "RayFit", *, aperture_per_lens_plan
         out = np.zeros(table.n_samples, dtype=np.float32)
     if len(fit) == 0:
         return out
-    c = 1.0 - 1.0 / fit.alpha
-    reach = np.abs(c) * idx.radius_m + 1.8 * idx.pitch_m
+    reach = np.abs(1.0 - 1.0 / fit.alpha) * idx.radius_m + 1.8 * idx.pitch_m
     lens_ptr, sample_ptr, ids, centres = _gather(idx, fit.sx_m, fit.sy_m, reach)
-    _render(centres, sample_ptr, lens_ptr, ids, _uv(table, ids), fit.sx_m, fit.sy_m, c, fit.intensity, idx.normals,
-            idx.half_sq, idx.neighbours * aperture_per_lens_plane, idx.neighbours,
-            _pixel_footprint(3, blur_px) * idx.u_per_px, table.aperture_radius_m ** 2 * (1 + 1e-9), out)
+    light = _render_gathered(fit, idx, lens_ptr, sample_ptr, centres, _uv(table, ids), aperture_per_lens_plane, blur_px)
+    _scatter_add(out, ids, light)
     return out
+
+
+def _render_gathered(fit: "RayFit", idx: "_TableIndex", lens_ptr: np.ndarray, sample_ptr: np.ndarray,
+                     centres: np.ndarray, uv: np.ndarray, aperture_per_lens_plane: float, blur_px: float
+                     ) -> np.ndarray:
+    """The light of particle ``p`` on each of its own gathered samples (:func:`_gather`'s layout)."""
+    out = np.zeros(uv.shape[0])
+    _render(centres, sample_ptr, lens_ptr, uv, fit.sx_m, fit.sy_m, 1.0 - 1.0 / fit.alpha, fit.intensity,
+            idx.normals, idx.half_sq, idx.neighbours * aperture_per_lens_plane, idx.neighbours,
+            _pixel_footprint(3, blur_px) * idx.u_per_px, idx.table.aperture_radius_m ** 2 * (1 + 1e-9), out)
+    return out
+
+
+def _prior_in_c(n: int, prior_alpha: np.ndarray | None, prior_sigma: np.ndarray | None
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Per particle: the prior's centre in ``c = 1 - 1/alpha`` and ``1 / (2 sigma_c^2)`` (0: none)."""
+    if prior_alpha is None or prior_sigma is None:
+        return np.zeros(n), np.zeros(n)
+    a = np.asarray(prior_alpha, dtype=np.float64).ravel()
+    sigma_c = np.asarray(prior_sigma, dtype=np.float64).ravel() / a**2  # dc = dalpha / alpha^2
+    if a.size != n or sigma_c.size != n:
+        raise ValueError(f"prior_alpha and prior_sigma need {n} values each")
+    use = np.isfinite(a) & np.isfinite(sigma_c) & (sigma_c > 0)
+    k = np.zeros(n)
+    k[use] = 0.5 / sigma_c[use] ** 2
+    return np.where(use, 1.0 - 1.0 / np.where(use, a, 1.0), 0.0), k
 
 
 def aperture_per_lens_plane(optics: Any) -> float:
@@ -188,8 +212,9 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
              lateral_half_range_pitches: float = 0.4, reach_pitches: float = 1.2, blur_px: float = 0.5,
              temperature: float = 0.5, coarse_temperature: float = 1.0,
              fine: tuple[int, float, int, int] = (9, 0.25, 3, 3),
-             subtract: np.ndarray | None = None, coarse_points: int = 1, coarse_lateral: int = 3,
-             prior_sigma: float | None = None) -> RayFit:
+             subtract: np.ndarray | None = None, own: "RayFit | None" = None, coarse_points: int = 1,
+             coarse_lateral: int = 3, prior_alpha: np.ndarray | None = None,
+             prior_sigma: np.ndarray | None = None, prior_outlier: float = 0.05) -> RayFit:
     """Refine position and depth of particles by fitting the forward model to the raw samples.
 
     Two passes: a coarse grid of ``n_alpha`` depths over ``alpha0 +- alpha_half_range`` and 3 x 3
@@ -233,13 +258,20 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
         pass, whose pixel centres misjudge those pixels (sharper, it settles on wrong basins).
     fine : (n_alpha, lateral_half_range_pitches, n_lateral, pixel_points_per_side)
         The fine pass's grid.
-    prior_sigma : float, optional
-        Weigh candidates by a Gaussian of this width (in ``c``, about alpha) around the start:
-        where the pixels cannot tell the depth (one lens holds all the light, either sign of the
-        defocus fits), the start decides.
+    prior_alpha, prior_sigma, prior_outlier : ndarray of shape (n,), ndarray, float
+        A prior on each particle's depth (e.g. :func:`analysis.depth_prior.neighbour_prior`): a
+        Gaussian of this centre and width with probability ``1 - prior_outlier``, else uniform over
+        the coarse window (so the pixels still win where they disagree with it). It decides only
+        where the pixels cannot tell the depth: one lens holds all the light, and every depth whose
+        blur fits in it (either sign of the defocus) explains them equally well. ``prior_sigma``
+        NaN: no prior for that particle.
     subtract : ndarray of shape (table.n_samples,), optional
         Light already explained (devignetted DN per sample, from :func:`render_fits`), taken off
         before fitting: particles hidden behind others are then fitted to what is left.
+    own : RayFit, optional
+        Earlier fits of these same particles (row for row), whose light ``subtract`` includes: each
+        particle's own share is added back, so it is refitted to its pixels with only its
+        neighbours' light taken off (deblending a crowd).
 
     Returns
     -------
@@ -259,9 +291,19 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
     reach = np.maximum(np.abs(c_lo), np.abs(c_hi)) * idx.radius_m + (reach_pitches + lateral_half_range_pitches) * idx.pitch_m
     lens_ptr, sample_ptr, ids, centres = _gather(idx, sx0, sy0, reach)
     values = (flat[table.pixel_index[ids]].astype(np.float64) - table.black_level) / _weight(table, ids) - background
+    uv = _uv(table, ids)
     if subtract is not None:
         values -= subtract[ids]
-    uv = _uv(table, ids)
+    if own is not None:
+        if len(own) != n:
+            raise ValueError(f"own holds {len(own)} fits for {n} particles")
+        values += _render_gathered(own, idx, lens_ptr, sample_ptr, centres, uv, aperture_per_lens_plane, blur_px)
+    c_prior, prior_k = _prior_in_c(n, prior_alpha, prior_sigma)
+    # The uniform part's density relative to the Gaussian's peak.
+    with np.errstate(divide="ignore"):
+        sigma_c = np.sqrt(0.5 / prior_k)
+    prior_floor = np.where(prior_k > 0, prior_outlier / max(1.0 - prior_outlier, 1e-12) * np.sqrt(2 * np.pi)
+                           * sigma_c / np.abs(c_hi - c_lo), 0.0)
     out = np.empty((n, 7))
     _fit_all(centres, sample_ptr, lens_ptr, uv, values, sx0, sy0, c_lo, c_hi, int(n_alpha),
              lateral_half_range_pitches * idx.pitch_m, idx.pitch_m, idx.normals, idx.half_sq,
@@ -269,7 +311,7 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
              _pixel_footprint(coarse_points, blur_px) * idx.u_per_px, _pixel_footprint(int(fine[3]), blur_px) * idx.u_per_px,
              table.aperture_radius_m ** 2 * (1 + 1e-9), float(temperature), float(coarse_temperature), int(fine[0]),
              float(fine[1]), int(fine[2]),
-             int(coarse_lateral), 0.0 if not prior_sigma else 0.5 / prior_sigma ** 2, out)
+             int(coarse_lateral), c_prior, prior_k, prior_floor, out)
     return RayFit(sx_m=out[:, 0], sy_m=out[:, 1], alpha=1.0 / (1.0 - out[:, 2]), intensity=out[:, 3],
                   n_lit=out[:, 4].astype(np.int64), residual=out[:, 5],
                   alpha_spread=out[:, 6] / (1.0 - out[:, 2]) ** 2)
@@ -278,16 +320,16 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
 @numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
 def _fit_all(centres, sample_ptr, lens_ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, pitch, normals,
              half_sq, neigh_u, neigh_s, sub_coarse, sub_fine, r_ap2, temperature, coarse_temperature, n_c_fine,
-             fine_lat, n_lat_fine, n_lat_coarse, prior_k, out):
+             fine_lat, n_lat_fine, n_lat_coarse, c_prior, prior_k, prior_floor, out):
     # One particle per prange iteration; each writes only its own row of `out`.
     for p in prange(sx0.size):
         la, lb = lens_ptr[p], lens_ptr[p + 1]
         cen = centres[la:lb]
         ptr = sample_ptr[la:lb + 1]
         coarse = np.empty(7)
-        c_prior = 0.5 * (c_lo[p] + c_hi[p])
         _fit_one(cen, ptr, uv, values, sx0[p], sy0[p], c_lo[p], c_hi[p], n_c, half_lat, n_lat_coarse, pitch,
-                 normals, half_sq, neigh_u, neigh_s, sub_coarse, r_ap2, coarse_temperature, c_prior, prior_k, coarse)
+                 normals, half_sq, neigh_u, neigh_s, sub_coarse, r_ap2, coarse_temperature, c_prior[p], prior_k[p],
+                 prior_floor[p], coarse)
         if coarse[3] <= 0.0:
             out[p, :] = coarse
             continue
@@ -295,12 +337,12 @@ def _fit_all(centres, sample_ptr, lens_ptr, uv, values, sx0, sy0, c_lo, c_hi, n_
         half_c = max(2.0 * coarse[6], 1.5 * step)
         _fit_one(cen, ptr, uv, values, coarse[0], coarse[1], coarse[2] - half_c, coarse[2] + half_c,
                  n_c_fine, fine_lat * pitch, n_lat_fine, pitch, normals, half_sq, neigh_u, neigh_s, sub_fine, r_ap2,
-                 temperature, c_prior, prior_k, out[p])
+                 temperature, c_prior[p], prior_k[p], prior_floor[p], out[p])
 
 
 @numba.njit(cache=True, fastmath=_FASTMATH)
 def _fit_one(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, n_lat, pitch, normals, half_sq,
-             neigh_u, neigh_s, sub, r_ap2, temperature, c_prior, prior_k, out):
+             neigh_u, neigh_s, sub, r_ap2, temperature, c_prior, prior_k, prior_floor, out):
     """Grid of (c, s) candidates over the lenses ``centres`` (samples ``ptr[l]:ptr[l+1]`` each);
     writes mean s_x, s_y, c, best I0, lit samples, residual, std of c."""
     n_sub = sub.shape[0]
@@ -412,7 +454,7 @@ def _fit_one(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, n_la
     mc2 = 0.0
     for k in range(n_cand):
         dc = cand[k, 2] - c_prior
-        w = np.exp(-(costs[k] - costs[best]) / scale - prior_k * dc * dc)
+        w = np.exp(-(costs[k] - costs[best]) / scale) * (np.exp(-prior_k * dc * dc) + prior_floor)
         wsum += w
         mx += w * cand[k, 0]
         my += w * cand[k, 1]
@@ -499,11 +541,11 @@ def _lit_fraction(u0, v0, cx, cy, sx, sy, c, normals, half_sq, neigh_u, neigh_s,
     return frac / n_ap if n_ap > 0 else 0.0
 
 
-@numba.njit(cache=True, fastmath=_FASTMATH)
-def _render(centres, sample_ptr, lens_ptr, ids, uv, sx, sy, c, intensity, normals, half_sq, neigh_u, neigh_s,
+@numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
+def _render(centres, sample_ptr, lens_ptr, uv, sx, sy, c, intensity, normals, half_sq, neigh_u, neigh_s,
             sub, r_ap2, out):
-    # Serial: particles may share samples, and each adds its light to them.
-    for p in range(sx.size):
+    # Each particle writes only its own gathered samples, so particles run in parallel.
+    for p in prange(sx.size):
         if intensity[p] <= 0.0:
             continue
         for lens in range(lens_ptr[p], lens_ptr[p + 1]):
@@ -511,4 +553,12 @@ def _render(centres, sample_ptr, lens_ptr, ids, uv, sx, sy, c, intensity, normal
                 f = _lit_fraction(uv[j, 0], uv[j, 1], centres[lens, 0], centres[lens, 1], sx[p], sy[p], c[p],
                                   normals, half_sq, neigh_u, neigh_s, sub, r_ap2)
                 if f > 0.0:
-                    out[ids[j]] += intensity[p] * f
+                    out[j] = intensity[p] * f
+
+
+@numba.njit(cache=True)
+def _scatter_add(out, ids, values):
+    # Serial: samples lit by several particles collect the light of each.
+    for j in range(ids.size):
+        if values[j] != 0.0:
+            out[ids[j]] += values[j]

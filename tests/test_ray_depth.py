@@ -107,3 +107,43 @@ def test_fit_tells_in_front_of_focus_from_behind(blur, offset):
         c_fit = 1.0 - 1.0 / fit.alpha[0]
         # Averaging the two signs' minima gives about 0; the sign and most of the size must come back.
         assert c_fit / c > 0.5, (sign, c_fit, c)
+
+
+def test_prior_decides_only_where_the_pixels_cannot(scene):
+    """A depth prior settles particles that light one lens, and yields to the pixels elsewhere."""
+    exposure, calibration, table, truth, nn, s_hat, noise = scene
+    ratio = aperture_per_lens_plane(calibration.model.optics)
+    args = dict(background=noise.background, aperture_per_lens_plane=ratio)
+    sharp = truth["blur_pitches"] < 0.3
+    defocused = truth["blur_pitches"] > 1.5
+    assert sharp.sum() >= 2 and defocused.sum() >= 2
+    free = fit_rays(exposure.image, table, s_hat[:, 0], s_hat[:, 1], truth["alpha"], **args)
+    sigma = np.full(truth["alpha"].size, 5e-5)
+    right = fit_rays(exposure.image, table, s_hat[:, 0], s_hat[:, 1], truth["alpha"], **args,
+                     prior_alpha=truth["alpha"], prior_sigma=sigma)
+    err_free = np.abs(free.alpha - truth["alpha"])[sharp]
+    err_right = np.abs(right.alpha - truth["alpha"])[sharp]
+    assert np.mean(err_right) < 0.5 * np.mean(err_free) + 1e-5
+    assert np.all(right.alpha_spread[sharp] < free.alpha_spread[sharp])
+    # A confident but wrong prior, 3 mm-equivalent off: the defocused particles' own light wins.
+    wrong = fit_rays(exposure.image, table, s_hat[:, 0], s_hat[:, 1], truth["alpha"], **args,
+                     prior_alpha=truth["alpha"] + 0.003, prior_sigma=sigma)
+    assert np.allclose(wrong.alpha[defocused], free.alpha[defocused], atol=2e-4)
+
+
+def test_refit_with_neighbours_light_taken_off_keeps_isolated_particles(scene):
+    """Deblending adds each particle's own light back: an isolated particle refits to the same place."""
+    from analysis.ray_depth import render_fits
+
+    exposure, calibration, table, truth, nn, s_hat, noise = scene
+    ratio = aperture_per_lens_plane(calibration.model.optics)
+    args = dict(background=noise.background, aperture_per_lens_plane=ratio)
+    first = fit_rays(exposure.image, table, s_hat[:, 0], s_hat[:, 1], truth["alpha"], **args)
+    explained = render_fits(table, first, aperture_per_lens_plane=ratio)
+    again = fit_rays(exposure.image, table, first.sx_m, first.sy_m, first.alpha, **args, subtract=explained,
+                     own=first)
+    gone = fit_rays(exposure.image, table, first.sx_m, first.sy_m, first.alpha, **args, subtract=explained)
+    assert np.allclose(again.intensity, first.intensity, rtol=0.1)
+    assert np.median(np.abs(again.alpha - first.alpha)) < 1e-4
+    # Without adding its own light back, a particle's pixels are (nearly) empty.
+    assert np.median(gone.intensity) < 0.3 * np.median(first.intensity)
