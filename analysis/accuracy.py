@@ -16,6 +16,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
+from .camera_model import Lattice
+
 #: Defocus bins (blur diameter in lens pitches) for the depth error breakdown.
 BLUR_BINS: tuple[tuple[float, float], ...] = ((0.0, 0.5), (0.5, 1.0), (1.0, 2.0), (2.0, math.inf))
 
@@ -45,6 +47,48 @@ class Score:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+
+def single_lens(truth: Mapping[str, np.ndarray], lattice: Lattice) -> np.ndarray:
+    """True particles whose blur disk lies inside one micro-lens cell.
+
+    Their raw pixels are those of a particle in focus on that lens: every depth whose blur still
+    fits in the cell, in front of focus or behind it, explains them exactly (in the simulator's
+    geometric optics), so nothing in the exposure tells those depths apart.
+
+    Parameters
+    ----------
+    truth : mapping with ``x, y`` (the chief ray on the MLA in micro-image lattice pixels) and
+        ``blur_pitches`` (blur diameter in lens pitches), as the simulator's truth CSV has them.
+    lattice : Lattice
+    """
+    x, y = (np.asarray(truth[c], float) for c in ("x", "y"))
+    i, j = lattice.nearest(x, y)
+    cx, cy = lattice.centre(i, j)
+    offset = np.column_stack([x - cx, y - cy])
+    b1, b2 = lattice.basis[:, 0], lattice.basis[:, 1]
+    # Distance from the point to the nearest edge of its hexagonal cell (half-way to each neighbour).
+    inner = np.min([np.linalg.norm(v) / 2 - np.abs(offset @ v) / np.linalg.norm(v) for v in (b1, b2, b2 - b1)],
+                   axis=0)
+    return np.asarray(truth["blur_pitches"], float) / 2 * lattice.pitch_px <= inner
+
+
+def depth_floor(truth: Mapping[str, np.ndarray], lattice: Lattice, *, nn_mm: float) -> tuple[int, float]:
+    """How many particles light one lens only, and the depth RMS over NN they alone leave.
+
+    Without knowledge beyond the exposure, the best estimate for such a particle is the middle of
+    the depths it allows, which is the focus (``alpha = 1``); the floor is the RMS, over all true
+    particles, of ``|Z(alpha = 1) - Z|`` for these and 0 for the rest. A pipeline that scores below
+    it has used more than the exposure: a prior (:mod:`analysis.depth_prior`).
+    """
+    one = single_lens(truth, lattice)
+    z = np.asarray(truth["Z"], float)
+    alpha = np.asarray(truth["alpha"], float)
+    if z.size < 2 or np.ptp(alpha) == 0:
+        return int(one.sum()), math.nan
+    slope = np.polyfit(alpha, z, 1)[0]  # mm per unit alpha, locally linear
+    err = np.where(one, (alpha - 1.0) * slope, 0.0)
+    return int(one.sum()), float(np.sqrt(np.mean(err**2)) / nn_mm)
 
 
 def mean_nn_distance(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> float:

@@ -35,7 +35,7 @@ os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".cache" / "numba"))
 
 import numpy as np  # noqa: E402
 
-from analysis.accuracy import BLUR_BINS, Score, score  # noqa: E402
+from analysis.accuracy import BLUR_BINS, Score, depth_floor, score  # noqa: E402
 from analysis.calibration import load_calibration  # noqa: E402
 from analysis.exposure import read_exposure  # noqa: E402
 from analysis.particle_table import read_csv  # noqa: E402
@@ -89,7 +89,8 @@ def measure_case(folder: Path, params: PipelineParams, repeat: int) -> dict:
         times.append(time.perf_counter() - t0)
     truth = read_csv(folder / "IMG_0001.truth.csv")
     s = score(result.particles, truth, nn_mm=nn)
-    return {"score": s.to_dict(), "timings": result.timings, "wall_s": min(times), "first_s": first_s,
+    return {"score": s.to_dict(), "floor": depth_floor(truth, exposure.model.lattice, nn_mm=nn),
+            "timings": result.timings, "wall_s": min(times), "first_s": first_s,
             "calibration_load_s": load_s, "warm_up_s": warm_s, "warnings": result.warnings,
             "grid": [result.grid.width, result.grid.height], "peak_rss_mb": peak_rss_mb()}
 
@@ -136,7 +137,7 @@ def main() -> int:
     print(f"\nsensor {args.size} px, {params.n_slices} slices over alpha {params.alpha_min} ... {params.alpha_max}; "
           f"errors in % of the mean 3D nearest-neighbour distance (NN)\n")
     head = (f"{'scenario':13s} {'seed':>4s} {'true':>5s} {'found':>5s} {'recall':>7s} {'precis':>7s} "
-            f"{'depth':>7s} {'|dZ|':>7s} {'lateral':>7s} {'pairs':>6s}")
+            f"{'depth':>7s} {'|dZ|':>7s} {'lateral':>7s} {'pairs':>6s} {'1-lens':>6s} {'floor':>6s}")
     print(head)
     print("-" * len(head))
     for r in rows:
@@ -144,7 +145,10 @@ def main() -> int:
         pairs = f"{s.pairs_separated}/{s.pairs_total}" if s.pairs_total else "-"
         print(f"{r['scenario']:13s} {r['seed']:4d} {s.n_true:5d} {s.n_found:5d} {pct(s.recall)} {pct(s.precision)} "
               f"{pct(s.depth_fit_rms_over_nn)} {pct(s.depth_abs_rms_over_nn)} {pct(s.lateral_rms_over_nn)} "
-              f"{pairs:>6s}")
+              f"{pairs:>6s} {r['floor'][0]:6d} {pct(r['floor'][1])}")
+    print("\n1-lens: true particles whose blur fits in one micro-lens (their pixels allow any depth up to that "
+          "blur,\nin front of focus or behind); floor: the |dZ| they alone leave when placed at the middle of "
+          "what\ntheir pixels allow (analysis.accuracy.depth_floor). Scoring below it takes a prior (depth_prior).")
     print("\ntargets:", "; ".join(f"{k}: " + ", ".join(f"{n} {'>=' if n in ('recall', 'precision') else '<='} "
                                                         f"{100 * v:g} %" for n, v in t.items() if v is not None)
                                   for k, t in TARGETS.items()))

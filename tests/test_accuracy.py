@@ -1,0 +1,71 @@
+"""What the exposure can tell: particles whose blur fits in one micro-lens, and the floor they set."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from analysis.accuracy import depth_floor, single_lens
+from analysis.camera_model import CameraModel
+from analysis.scenarios import Particles
+from analysis.sim_camera import simulated_camera_metadata
+from analysis.simulate import particle_truth, render_exposure
+
+
+def model(size: int = 160) -> CameraModel:
+    return CameraModel.from_metadata(simulated_camera_metadata(size=size))
+
+
+def particle_on_lens(m: CameraModel, alpha: float, offset_px: tuple[float, float] = (0.0, 0.0)) -> Particles:
+    """One particle whose chief ray meets the MLA at the centre lens (+ offset), sharp at ``alpha``."""
+    lat, optics = m.lattice, m.optics
+    i, j = lat.nearest(np.array([m.width / 2]), np.array([m.height / 2]))
+    cx, cy = lat.centre(i, j)
+    z = float(optics.z_of_alpha(alpha))
+    scale = optics.exit_pupil_m / z * optics.projection_factor / optics.pixel_pitch_m  # px per mm of X
+    x_mm = (cx[0] + offset_px[0] - lat.origin_x) / scale
+    y_mm = (cy[0] + offset_px[1] - lat.origin_y) / scale
+    return Particles(np.array([x_mm]), np.array([y_mm]), np.array([z]), np.array([1500.0]))
+
+
+def blur_alpha(m: CameraModel, blur_pitches: float, sign: float) -> float:
+    """The alpha at which a particle's blur disk is ``blur_pitches`` across, in front of or behind focus."""
+    c = sign * blur_pitches * m.optics.lens_pitch_m / m.optics.aperture_diameter_m  # c = 1 - 1/alpha
+    return 1.0 / (1.0 - c)
+
+
+def test_blur_inside_one_lens_looks_the_same_in_front_of_and_behind_focus():
+    """The claim behind the floor: the raw pixels of such a particle do not depend on its depth."""
+    m = model()
+    images = [render_exposure(m, particle_on_lens(m, blur_alpha(m, 0.6, s)), seed=1, noise=False)
+              for s in (-1.0, 1.0)]
+    sharp = render_exposure(m, particle_on_lens(m, 1.0), seed=1, noise=False)
+    lit = sharp > np.median(sharp) + 50
+    assert lit.sum() > 40  # one micro-image
+    for image in images:
+        assert np.abs(image.astype(int) - sharp.astype(int)).max() <= 2  # rounding of the ray sampling
+    # A blur of 1.6 pitches spills into the neighbours: the pixels do tell, and the check can fail.
+    wide = render_exposure(m, particle_on_lens(m, blur_alpha(m, 1.6, 1.0)), seed=1, noise=False)
+    assert np.abs(wide.astype(int) - sharp.astype(int)).max() > 100
+
+
+def test_single_lens_follows_position_and_blur():
+    m = model()
+    cases = [((0.0, 0.0), 0.6, True), ((0.0, 0.0), 1.2, False), ((4.0, 0.0), 0.3, False), ((2.0, 0.0), 0.3, True)]
+    for offset, blur, expected in cases:
+        p = particle_on_lens(m, blur_alpha(m, blur, 1.0), offset)
+        t = particle_truth(m, p)
+        truth = {"x": t.x_px, "y": t.y_px, "blur_pitches": t.blur_pitches}
+        assert bool(single_lens(truth, m.lattice)[0]) is expected, (offset, blur)
+
+
+def test_depth_floor_counts_only_single_lens_particles():
+    m = model()
+    ps = [particle_on_lens(m, blur_alpha(m, b, s), off) for b, s, off in
+          [(0.6, 1.0, (0, 0)), (0.6, -1.0, (0, 0)), (3.0, 1.0, (0, 0)), (0.2, 1.0, (4.5, 0))]]
+    p = Particles(*(np.concatenate([getattr(q, f) for q in ps]) for f in ("x_mm", "y_mm", "z_mm", "brightness_dn")))
+    t = particle_truth(m, p)
+    truth = {"x": t.x_px, "y": t.y_px, "blur_pitches": t.blur_pitches, "alpha": t.alpha, "Z": p.z_mm}
+    count, floor = depth_floor(truth, m.lattice, nn_mm=1.0)
+    assert count == 2
+    dz = (t.alpha[:2] - 1.0) * np.polyfit(t.alpha, p.z_mm, 1)[0]
+    assert np.isclose(floor, np.sqrt(np.sum(dz**2) / 4))
