@@ -98,6 +98,12 @@ class LightFieldTable:
     _scratch: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
+    def normalisation_keys(self) -> frozenset[bytes]:
+        """Which refocus normalisations the table holds (:func:`save_table` keeps them): a
+        caller that saves the table compares this before and after processing."""
+        return frozenset(self._normalisations)
+
+    @property
     def n_samples(self) -> int:
         return int(self.pixel_index.size)
 

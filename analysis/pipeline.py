@@ -46,7 +46,6 @@ from scipy.spatial import cKDTree
 from .calibration import Calibration
 from .camera_model import CameraModel
 from .coordinates import Calibration3D, ThinLensCalibration, UserCalibration, to_physical
-from .depth_prior import neighbour_prior
 from .depth import Peaks, Tracks, find_depth_peaks, link_tracks, merge_duplicates, unique_indices
 from .errors import CameraMismatchError, MetadataError, ParameterError
 from .exposure import Exposure
@@ -56,6 +55,8 @@ from .maxima import find_maxima
 from .moments import detect
 from .particle_table import COLUMNS, write_csv, write_hdf5
 from .ray_depth import RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
+from .refine import RayFitter, apply_depth_prior, concat_fits, concat_peaks, deblend, inside, refine_peaks, \
+    residual_image, take_fit
 from .refocus import alphas_for_depth_range, default_alphas, products, refocus_stack, select_samples, \
     subaperture_image
 
@@ -471,7 +472,7 @@ def _add_maxima(product: np.ndarray, alphas: np.ndarray, params: PipelineParams,
                  prominence=np.ones(n))
     tracks = Tracks(x=np.vstack([tracks.x, extra.x]), y=np.vstack([tracks.y, extra.y]),
                     brightness=np.vstack([tracks.brightness, extra.brightness]))
-    return _concat_peaks(peaks, cand), tracks
+    return concat_peaks(peaks, cand), tracks
 
 
 def process(exposure: Exposure, calibration: Calibration, params: PipelineParams | None = None, *,
@@ -526,7 +527,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
 
     t = time.perf_counter()
     table = get_table(calibration, grid_oversample=params.grid_oversample, cache_dir=cache_dir)
-    n_norms = len(table._normalisations)
+    norms_before = table.normalisation_keys
     grid = table.grid
     timings["table"] = time.perf_counter() - t
     report(0.05)
@@ -536,7 +537,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         t = time.perf_counter()
         particles, curves = _particle_table(peaks, tracks, alphas, grid, coordinates, warnings, fit)
         timings["coordinates"] = time.perf_counter() - t
-        if cache_dir is not None and len(table._normalisations) != n_norms:
+        if cache_dir is not None and table.normalisation_keys != norms_before:
             _save_table_quietly(table, table_cache_path(cache_dir, calibration, params.grid_oversample))
         timings["total"] = time.perf_counter() - t_start
         report(1.0)
@@ -576,80 +577,30 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     report(0.8)
     fit = None
     if params.refine and len(peaks):
+        fitter = RayFitter(
+            exposure.image, get_table(calibration, cache_dir=cache_dir, rim_px=FIT_TABLE_RIM_PX), grid,
+            background=samples.background, aperture_per_lens_plane=aperture_per_lens_plane(optics),
+            alpha_half_range=params.refine_alpha_range, fit_depths=params.fit_depths,
+            fit_lateral=params.fit_lateral, min_intensity=params.min_intensity_sigma * max(samples.sigma, 0.5),
+            max_residual=params.max_fit_residual, merge_radius_px=params.link_radius_px,
+            merge_alpha=params.merge_slices * float(alphas[1] - alphas[0]))
         t = time.perf_counter()
-        fit_table = get_table(calibration, cache_dir=cache_dir, rim_px=FIT_TABLE_RIM_PX)
-        peaks, fit = refine_peaks(exposure.image, fit_table, grid, peaks, background=samples.background,
-                                  aperture_per_lens_plane=aperture_per_lens_plane(calibration.model.optics),
-                                  alpha_half_range=params.refine_alpha_range,
-                                  min_intensity=params.min_intensity_sigma * max(samples.sigma, 0.5),
-                                  max_residual=params.max_fit_residual, shadow_probe=params.shadow_probe,
-                                  merge_radius_px=params.link_radius_px,
-                                  merge_alpha=params.merge_slices * float(alphas[1] - alphas[0]),
-                                  fit_depths=params.fit_depths, fit_lateral=params.fit_lateral)
-        first_heights = peaks.peak_height
-        peaks, fit = _inside(peaks, fit, alphas)
+        peaks, fit = inside(*refine_peaks(fitter, peaks, shadow_probe=params.shadow_probe), alphas)
         timings["refine"] = time.perf_counter() - t
         t = time.perf_counter()
-        for _ in range(params.passes - 1 if len(peaks) else 0):
-            # Crowded clusters: blobs of neighbours merge in the product images. Take the light of the
-            # particles found so far off the raw image and look again at what is left.
-            ratio = aperture_per_lens_plane(calibration.model.optics)
-            explained = render_fits(fit_table, fit, aperture_per_lens_plane=ratio)
-            residual = residual_image(exposure.image, fit_table, explained)
-            rs = select_samples(residual, table, noise_sigmas=params.noise_sigmas)
-            rstack = refocus_stack(residual, table, alphas, grid=grid, samples=rs)
-            rsub = subaperture_image(residual, table, fraction=params.aperture_fraction,
-                                     blur_sigma_px=params.blur_sigma_px, grid=grid, samples=rs)
-            new, new_tracks = locate(products(rstack, rsub, out=rstack), alphas, params, threshold=threshold)
-            # Left-over light of imperfectly modelled particles makes weak blobs (a fifth of the
-            # first pass's typical peak or less); a particle of its own is about as bright as the rest.
-            new = new.take(np.flatnonzero(new.peak_height >= 0.3 * np.median(first_heights)))
-            log.debug("second pass: %d candidates", len(new))
-            if len(new) == 0:
+        for _ in range(params.passes - 1):
+            found = _look_again(fitter, table, params, alphas, threshold, peaks, tracks, fit)
+            if found is None:
                 break
-            new, new_fit = refine_peaks(exposure.image, fit_table, grid, new, background=samples.background,
-                                        aperture_per_lens_plane=ratio, alpha_half_range=params.refine_alpha_range,
-                                        min_intensity=params.min_intensity_sigma * max(samples.sigma, 0.5),
-                                        max_residual=params.max_fit_residual, shadow_probe=0.0,
-                                        merge_radius_px=params.link_radius_px,
-                                        merge_alpha=params.merge_slices * float(alphas[1] - alphas[0]),
-                                        fit_depths=params.fit_depths, fit_lateral=params.fit_lateral,
-                                        subtract=explained)
-            new, new_fit = _inside(new, new_fit, alphas)
-            # As for hidden particles: a new one must fit well and be about as bright as the others
-            # (left-over light of imperfectly modelled neighbours is a tenth of theirs or less).
-            good = np.flatnonzero((new_fit.residual <= 0.2) & (new_fit.intensity >= 0.35 * np.median(fit.intensity)))
-            new, new_fit = new.take(good), _take_fit(new_fit, good)
-            if len(new) == 0:
-                break
-            both, both_fit = _concat_peaks(peaks, new), _concat_fits(fit, new_fit)
-            priority = np.r_[fit.intensity + 1e12, new_fit.intensity]
-            kept = unique_indices(both, radius_px=params.link_radius_px,
-                                  alpha_tolerance=params.merge_slices * float(alphas[1] - alphas[0]),
-                                  priority=priority)
-            if kept.size == len(peaks):
-                break
-            # The new peaks' curves are tracks of the residual's stack: append them to the first
-            # pass's, so each particle's track index still points at its own curve.
-            both = dataclasses.replace(both, track=np.r_[peaks.track, new.track + len(tracks)])
-            tracks = Tracks(x=np.vstack([tracks.x, new_tracks.x]), y=np.vstack([tracks.y, new_tracks.y]),
-                            brightness=np.vstack([tracks.brightness, new_tracks.brightness]))
-            peaks, fit = both.take(kept), _take_fit(both_fit, kept)
+            peaks, tracks, fit = found
         timings["more_passes"] = time.perf_counter() - t
         if params.deblend and len(peaks) > 1:
             t = time.perf_counter()
-            peaks, fit = deblend(exposure.image, fit_table, grid, peaks, fit, background=samples.background,
-                                 aperture_per_lens_plane=aperture_per_lens_plane(calibration.model.optics),
-                                 alpha_half_range=params.refine_alpha_range, fit_depths=params.fit_depths,
-                                 fit_lateral=params.fit_lateral)
+            peaks, fit = deblend(fitter, peaks, fit)
             timings["deblend"] = time.perf_counter() - t
         if params.depth_prior and len(peaks) > 1:
             t = time.perf_counter()
-            peaks, fit = apply_depth_prior(exposure.image, fit_table, grid, peaks, fit,
-                                           background=samples.background,
-                                           aperture_per_lens_plane=aperture_per_lens_plane(calibration.model.optics),
-                                           alpha_half_range=params.refine_alpha_range, fit_depths=params.fit_depths,
-                                           fit_lateral=params.fit_lateral)
+            peaks, fit = apply_depth_prior(fitter, peaks, fit)
             timings["depth_prior"] = time.perf_counter() - t
     report(0.9)
     if len(peaks) == 0:
@@ -661,166 +612,45 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     return finish(peaks, tracks, stack, sub, threshold, fit)
 
 
-def refine_peaks(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, peaks: Peaks, *, background: float,
-                 aperture_per_lens_plane: float, alpha_half_range: float, min_intensity: float,
-                 max_residual: float, merge_radius_px: float, merge_alpha: float, shadow_probe: float = 0.0,
-                 probe_residual: float = 0.2, probe_fraction: float = 0.35, probe_light: float = 0.5,
-                 probe_half_range: float = 0.0025, subtract: np.ndarray | None = None,
-                 max_probed: int = 100000, fit_depths: int = 33, fit_lateral: int = 3
-                 ) -> tuple[Peaks, RayFit]:
-    """Replace each peak's position and depth by the forward-model fit to the raw pixels.
+def _look_again(fitter: RayFitter, table: LightFieldTable, params: PipelineParams, alphas: np.ndarray,
+                threshold: float, peaks: Peaks, tracks: Tracks, fit: RayFit) -> tuple[Peaks, Tracks, RayFit] | None:
+    """One more detection pass on the raw image with the found particles' light taken off.
 
-    Peaks whose fitted intensity is below ``min_intensity``, or whose misfit exceeds
-    ``max_residual``, are dropped; peaks that converge onto one particle are merged
-    (within ``merge_radius_px`` and ``merge_alpha``; the brighter kept). ``fit_depths`` and
-    ``fit_lateral`` set the fit's grid (:func:`analysis.ray_depth.fit_rays`: coarse depths, and
-    positions per side in both passes; probes for hidden particles use it in the coarse pass only,
-    since crowds probe many). Returns the refined peaks and the matching rows of the fit.
+    Crowded clusters: blobs of neighbours merge in the product images. Returns the particles with
+    the new ones added, or None when the pass finds none.
     """
-    sx0, sy0 = grid.to_lens_plane(peaks.x, peaks.y)
-    fit = fit_rays(image, table, sx0, sy0, peaks.alpha, background=background,
-                   aperture_per_lens_plane=aperture_per_lens_plane, alpha_half_range=alpha_half_range,
-                   subtract=subtract, n_alpha=fit_depths, coarse_lateral=fit_lateral,
-                   fine=_fine_grid(fit_lateral))
-    refined, fit = _accept(peaks, fit, grid, min_intensity, max_residual)
-    kept = unique_indices(refined, radius_px=merge_radius_px, alpha_tolerance=merge_alpha, priority=fit.intensity)
-    refined, fit = refined.take(kept), _take_fit(fit, kept)
-    if shadow_probe > 0 and len(refined) and len(refined) <= max_probed:
-        # A particle hidden behind another (same line of sight, other depth) often merges into its
-        # neighbour's brightness curve without a maximum of its own. Take the light of the particles
-        # found so far off the raw samples and probe what is left, in front of and behind each.
-        explained = render_fits(table, fit, aperture_per_lens_plane=aperture_per_lens_plane)
-        # Only where light is left over around a particle (a hidden one's share of the aperture).
-        c_probe = np.abs(1.0 - 1.0 / (fit.alpha - shadow_probe))
-        pitch = float(np.hypot(*table.basis_m[:, 0]))
-        left = unexplained_light(image, table, fit.sx_m, fit.sy_m, c_probe * table.aperture_radius_m + pitch,
-                                 background=background, explained=explained, floor=0.3 * min_intensity)
-        own = fit.intensity * np.maximum(fit.n_lit, 1)
-        parents = np.flatnonzero(left > probe_light * own)
-        n = parents.size
-        probes = refined.take(np.r_[parents, parents])
-        probes = dataclasses.replace(probes, alpha=np.r_[refined.alpha[parents] - shadow_probe,
-                                                         refined.alpha[parents] + shadow_probe])
-        parent_intensity = np.r_[fit.intensity[parents], fit.intensity[parents]]
-        psx, psy = grid.to_lens_plane(probes.x, probes.y)
-        pfit = fit_rays(image, table, psx, psy, probes.alpha, background=background,
-                        aperture_per_lens_plane=aperture_per_lens_plane, alpha_half_range=probe_half_range,
-                        n_alpha=17, subtract=explained, coarse_lateral=fit_lateral)
-        log.debug("shadow probes: %d of %d particles probed, %d found", n, len(refined), len(probes))
-        # A probe must be a particle of its own: as bright as a good part of the one it hides behind
-        # (what is left of a neighbour's imperfectly modelled light is a tenth of it or less).
-        good = pfit.intensity >= probe_fraction * parent_intensity
-        probes, pfit = probes.take(np.flatnonzero(good)), _take_fit(pfit, np.flatnonzero(good))
-        probes, pfit = _accept(probes, pfit, grid, min_intensity, min(max_residual, probe_residual))
-        if len(probes):
-            both = _concat_peaks(refined, probes)
-            both_fit = _concat_fits(fit, pfit)
-            # Found particles win over probes that converged onto them.
-            priority = np.r_[fit.intensity + 1e12, pfit.intensity]
-            kept = unique_indices(both, radius_px=merge_radius_px, alpha_tolerance=merge_alpha, priority=priority)
-            refined, fit = both.take(kept), _take_fit(both_fit, kept)
-    return refined, fit
-
-
-def deblend(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, peaks: Peaks, fit: RayFit, *,
-            background: float, aperture_per_lens_plane: float, alpha_half_range: float, fit_depths: int,
-            fit_lateral: int) -> tuple[Peaks, RayFit]:
-    """Refit every particle with its neighbours' fitted light taken off its pixels.
-
-    Each first fit saw its neighbours' light too (crowds: the blurs of particles a pitch or two
-    apart overlap), which pulls position and depth; the refit starts from the first fit. A
-    particle whose refit finds no light of its own keeps its first fit.
-    """
-    explained = render_fits(table, fit, aperture_per_lens_plane=aperture_per_lens_plane)
-    new = fit_rays(image, table, fit.sx_m, fit.sy_m, fit.alpha, background=background,
-                   aperture_per_lens_plane=aperture_per_lens_plane, alpha_half_range=alpha_half_range,
-                   subtract=explained, own=fit, n_alpha=fit_depths, coarse_lateral=fit_lateral,
-                   fine=_fine_grid(fit_lateral))
-    ok = np.flatnonzero(new.intensity > 0)
-    return _replace_fits(peaks, fit, grid, ok, new, ok)
-
-
-def apply_depth_prior(image: np.ndarray, table: LightFieldTable, grid: ImageGrid, peaks: Peaks, fit: RayFit, *,
-                      background: float, aperture_per_lens_plane: float, alpha_half_range: float,
-                      fit_depths: int, fit_lateral: int) -> tuple[Peaks, RayFit]:
-    """Refit the particles whose pixels leave the depth open, with their neighbours' surface as prior.
-
-    Only where the prior is narrower than the spread the pixels allow
-    (:func:`analysis.depth_prior.neighbour_prior`); the others keep their fit.
-    """
-    prior = neighbour_prior(peaks.x, peaks.y, fit.alpha, fit.alpha_spread)
-    todo = np.flatnonzero(np.isfinite(prior.sigma) & (fit.alpha_spread > prior.sigma))
-    log.debug("depth prior: %d of %d particles refitted", todo.size, len(peaks))
-    if todo.size == 0:
-        return peaks, fit
-    explained = render_fits(table, fit, aperture_per_lens_plane=aperture_per_lens_plane)
-    sub = _take_fit(fit, todo)
-    new = fit_rays(image, table, sub.sx_m, sub.sy_m, sub.alpha, background=background,
-                   aperture_per_lens_plane=aperture_per_lens_plane, alpha_half_range=alpha_half_range,
-                   subtract=explained, own=sub, n_alpha=fit_depths, coarse_lateral=fit_lateral,
-                   fine=_fine_grid(fit_lateral), prior_alpha=prior.alpha[todo], prior_sigma=prior.sigma[todo])
-    return _replace_fits(peaks, fit, grid, todo[new.intensity > 0], new, np.flatnonzero(new.intensity > 0))
-
-
-def _replace_fits(peaks: Peaks, fit: RayFit, grid: ImageGrid, rows: np.ndarray, new: RayFit, new_rows: np.ndarray
-                  ) -> tuple[Peaks, RayFit]:
-    """``fit`` with ``rows`` replaced by ``new[new_rows]``, and the peaks moved to match."""
-    merged = RayFit(**{name: getattr(fit, name).copy() for name in fit.__dataclass_fields__})
-    for name in fit.__dataclass_fields__:
-        getattr(merged, name)[rows] = getattr(new, name)[new_rows]
-    x, y = grid.to_pixels(merged.sx_m, merged.sy_m)
-    moved = dataclasses.replace(peaks, x=np.asarray(x, float), y=np.asarray(y, float), alpha=merged.alpha,
-                                residual=merged.residual)
-    return moved, merged
-
-
-def _fine_grid(lateral: int) -> tuple[int, float, int, int]:
-    # The fit's fine pass: 9 depths, `lateral` positions per side over +-0.25 pitch, 3 x 3 points
-    # per pixel: the partly lit rim pixels of the neighbouring lenses tell a blur of about one
-    # pitch in front of focus from one behind it only when each pixel's area is modelled.
-    return (9, 0.25, lateral, 3)
-
-
-def _inside(peaks: Peaks, fit: RayFit, alphas: np.ndarray) -> tuple[Peaks, RayFit]:
-    """Drop fits that left the stack's alpha range: they found a particle of another range."""
-    inside = np.flatnonzero((peaks.alpha >= alphas[0]) & (peaks.alpha <= alphas[-1]))
-    if inside.size < len(peaks):
-        return peaks.take(inside), _take_fit(fit, inside)
-    return peaks, fit
-
-
-def residual_image(image: np.ndarray, table: LightFieldTable, explained: np.ndarray) -> np.ndarray:
-    """The raw image minus the light of fitted particles (``explained``, devignetted DN per table
-    sample, from :func:`analysis.ray_depth.render_fits`), clipped to the 12-bit range."""
-    out = np.array(image, dtype=np.uint16, copy=True)
-    flat = out.reshape(-1)
-    pred = explained * table.weight  # float32, one value per table sample
-    lit = np.flatnonzero(pred >= 0.5)  # only where a particle puts light: few samples, small temporaries
-    pix = table.pixel_index[lit]
-    flat[pix] = np.clip(np.rint(flat[pix] - pred[lit]), 0, 4095).astype(np.uint16)
-    return out
-
-
-def _accept(peaks: Peaks, fit: RayFit, grid: ImageGrid, min_intensity: float, max_residual: float
-            ) -> tuple[Peaks, RayFit]:
-    """Peaks moved to their fitted position and depth, keeping fits with light and a small misfit."""
-    x, y = grid.to_pixels(fit.sx_m, fit.sy_m)
-    moved = dataclasses.replace(peaks, x=np.asarray(x, float), y=np.asarray(y, float), alpha=fit.alpha,
-                                residual=fit.residual)
-    keep = np.flatnonzero((fit.intensity > max(min_intensity, 0.0)) & (fit.residual <= max_residual))
-    return moved.take(keep), _take_fit(fit, keep)
-
-
-def _concat_peaks(a: Peaks, b: Peaks) -> Peaks:
-    return Peaks(**{name: np.concatenate([getattr(a, name), getattr(b, name)]) for name in a.__dataclass_fields__})
-
-
-def _concat_fits(a: RayFit, b: RayFit) -> RayFit:
-    return RayFit(**{name: np.concatenate([getattr(a, name), getattr(b, name)]) for name in a.__dataclass_fields__})
-
-
-def _take_fit(fit: RayFit, index: np.ndarray) -> RayFit:
-    return RayFit(**{name: getattr(fit, name)[index] for name in fit.__dataclass_fields__})
+    if len(peaks) == 0:
+        return None
+    residual = residual_image(fitter.image, fitter.table, fitter.render(fit))
+    rs = select_samples(residual, table, noise_sigmas=params.noise_sigmas)
+    rstack = refocus_stack(residual, table, alphas, grid=fitter.grid, samples=rs)
+    rsub = subaperture_image(residual, table, fraction=params.aperture_fraction, blur_sigma_px=params.blur_sigma_px,
+                             grid=fitter.grid, samples=rs)
+    new, new_tracks = locate(products(rstack, rsub, out=rstack), alphas, params, threshold=threshold)
+    # Left-over light of imperfectly modelled particles makes weak blobs (a fifth of a typical
+    # particle's peak or less); a particle of its own is about as bright as the rest.
+    new = new.take(np.flatnonzero(new.peak_height >= 0.3 * np.median(peaks.peak_height)))
+    log.debug("another pass: %d candidates", len(new))
+    if len(new) == 0:
+        return None
+    new, new_fit = inside(*refine_peaks(fitter, new, subtract=fitter.render(fit)), alphas)
+    # As for hidden particles: a new one must fit well and be about as bright as the others
+    # (left-over light of imperfectly modelled neighbours is a tenth of theirs or less).
+    good = np.flatnonzero((new_fit.residual <= 0.2) & (new_fit.intensity >= 0.35 * np.median(fit.intensity)))
+    new, new_fit = new.take(good), take_fit(new_fit, good)
+    if len(new) == 0:
+        return None
+    # The new peaks' curves are tracks of the residual's stack: append them to the first pass's,
+    # so each particle's track index still points at its own curve.
+    both = dataclasses.replace(concat_peaks(peaks, new), track=np.r_[peaks.track, new.track + len(tracks)])
+    both_fit = concat_fits(fit, new_fit)
+    kept = unique_indices(both, radius_px=fitter.merge_radius_px, alpha_tolerance=fitter.merge_alpha,
+                          priority=np.r_[fit.intensity + 1e12, new_fit.intensity])
+    if kept.size == len(peaks):
+        return None
+    tracks = Tracks(x=np.vstack([tracks.x, new_tracks.x]), y=np.vstack([tracks.y, new_tracks.y]),
+                    brightness=np.vstack([tracks.brightness, new_tracks.brightness]))
+    return both.take(kept), tracks, take_fit(both_fit, kept)
 
 
 def _particle_table(peaks: Peaks, tracks: Tracks | None, alphas: np.ndarray, grid: ImageGrid,
@@ -831,7 +661,7 @@ def _particle_table(peaks: Peaks, tracks: Tracks | None, alphas: np.ndarray, gri
     order = np.lexsort((peaks.x, peaks.y)) if n else np.empty(0, dtype=np.int64)
     peaks = peaks.take(order)
     if fit is not None:
-        fit = _take_fit(fit, order)
+        fit = take_fit(fit, order)
         alpha_std, intensity = fit.alpha_spread, fit.intensity
     else:
         alpha_std, intensity = np.full(n, np.nan), np.full(n, np.nan)

@@ -169,3 +169,19 @@ def test_shadowing_pairs_become_two_particles(tmp_path):
     plain = PipelineParams(shadow_probe=0.0, passes=1)
     merged = score(process(exposure, calibration, plain).particles, truth, nn_mm=nn)
     assert merged.pairs_separated < s.pairs_separated
+
+
+def test_table_cache_keeps_the_newest_normalisation(layer, tmp_path):
+    """Once the table holds as many normalisations as it keeps, a new alpha set still reaches the disk."""
+    from analysis.lightfield import load_table
+    from analysis.pipeline import get_table, table_cache_path
+    from analysis.refocus import MAX_NORMALISATIONS
+
+    _, exposure, calibration, _, _, _ = layer
+    cache = tmp_path / "cache"
+    for n in range(5, 6 + MAX_NORMALISATIONS):
+        process(exposure, calibration, PipelineParams(n_slices=n, refine=False), cache_dir=cache)
+    table = get_table(calibration, cache_dir=cache)
+    saved = load_table(table_cache_path(cache, calibration, 1.0))
+    assert len(saved.normalisation_keys) == MAX_NORMALISATIONS
+    assert saved.normalisation_keys == table.normalisation_keys

@@ -1,0 +1,217 @@
+"""The pipeline's depth stages on the raw pixels: refine, probe for hidden particles, deblend, prior.
+
+Each takes candidate particles (:class:`analysis.depth.Peaks`, positions in output-image pixels)
+and returns them moved to the forward-model fit of :func:`analysis.ray_depth.fit_rays`, with
+the matching rows of the fit (:class:`analysis.ray_depth.RayFit`)::
+
+    fitter = RayFitter(image, fit_table, grid, background=..., ...)
+    peaks, fit = refine_peaks(fitter, peaks, shadow_probe=0.0065)   # fit, drop, merge, probe
+    peaks, fit = deblend(fitter, peaks, fit)                         # neighbours' light taken off
+    peaks, fit = apply_depth_prior(fitter, peaks, fit)               # where one lens holds the light
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from .depth import Peaks, unique_indices
+from .depth_prior import neighbour_prior
+from .image_grid import ImageGrid
+from .lightfield import LightFieldTable
+from .ray_depth import RayFit, fit_rays, render_fits, unexplained_light
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RayFitter:
+    """One exposure's raw image and the fit settings every depth stage shares.
+
+    Attributes
+    ----------
+    image : ndarray (H, W), uint16
+    table : LightFieldTable
+        The depth fit's table, with the micro-image rims (``analysis.pipeline.FIT_TABLE_RIM_PX``).
+    grid : ImageGrid
+        Output-image pixels of the candidates.
+    background, aperture_per_lens_plane, alpha_half_range : float
+        As :func:`analysis.ray_depth.fit_rays` takes them.
+    fit_depths, fit_lateral : int
+        The fit's grid: coarse depths, and positions per side in both passes.
+    min_intensity, max_residual : float
+        Fits dimmer than this (devignetted DN), or with a larger misfit, are no particle.
+    merge_radius_px, merge_alpha : float
+        Fits closer than this in the image and in alpha are one particle (the brighter kept).
+    """
+
+    image: np.ndarray
+    table: LightFieldTable
+    grid: ImageGrid
+    background: float
+    aperture_per_lens_plane: float
+    alpha_half_range: float
+    fit_depths: int
+    fit_lateral: int
+    min_intensity: float
+    max_residual: float
+    merge_radius_px: float
+    merge_alpha: float
+
+    def fit(self, sx_m: np.ndarray, sy_m: np.ndarray, alpha: np.ndarray, **options) -> RayFit:
+        """:func:`analysis.ray_depth.fit_rays` with these settings (``options`` override them)."""
+        settings = dict(background=self.background, aperture_per_lens_plane=self.aperture_per_lens_plane,
+                        alpha_half_range=self.alpha_half_range, n_alpha=self.fit_depths,
+                        coarse_lateral=self.fit_lateral, fine=fine_grid(self.fit_lateral))
+        settings.update(options)
+        return fit_rays(self.image, self.table, sx_m, sy_m, alpha, **settings)
+
+    def render(self, fit: RayFit) -> np.ndarray:
+        """The light of fitted particles on each table sample (:func:`analysis.ray_depth.render_fits`)."""
+        return render_fits(self.table, fit, aperture_per_lens_plane=self.aperture_per_lens_plane)
+
+
+def fine_grid(lateral: int) -> tuple[int, float, int, int]:
+    """The fit's fine pass: 9 depths, ``lateral`` positions per side over +-0.25 pitch, 3 x 3 points
+    per pixel (the partly lit rim pixels of the neighbouring lenses tell a blur of about one pitch
+    in front of focus from one behind it only when each pixel's area is modelled)."""
+    return (9, 0.25, lateral, 3)
+
+
+def refine_peaks(fitter: RayFitter, peaks: Peaks, *, shadow_probe: float = 0.0, subtract: np.ndarray | None = None,
+                 probe_residual: float = 0.2, probe_fraction: float = 0.35, probe_light: float = 0.5,
+                 probe_half_range: float = 0.0025) -> tuple[Peaks, RayFit]:
+    """Replace each peak's position and depth by the forward-model fit to the raw pixels.
+
+    Fits without enough light or with too large a misfit are dropped; fits that converge onto one
+    particle are merged. With ``shadow_probe`` > 0, particles hidden behind the ones found are
+    looked for this far in alpha in front of and behind each, where light is left over around it.
+    ``subtract``: light already explained (devignetted DN per table sample), taken off first.
+    """
+    sx0, sy0 = fitter.grid.to_lens_plane(peaks.x, peaks.y)
+    fit = fitter.fit(sx0, sy0, peaks.alpha, subtract=subtract)
+    refined, fit = accept(fitter, peaks, fit, fitter.max_residual)
+    kept = unique_indices(refined, radius_px=fitter.merge_radius_px, alpha_tolerance=fitter.merge_alpha,
+                          priority=fit.intensity)
+    refined, fit = refined.take(kept), take_fit(fit, kept)
+    if shadow_probe <= 0 or len(refined) == 0:
+        return refined, fit
+    # A particle hidden behind another (same line of sight, other depth) often merges into its
+    # neighbour's brightness curve without a maximum of its own. Take the light of the particles
+    # found so far off the raw samples and probe what is left, in front of and behind each.
+    table = fitter.table
+    explained = fitter.render(fit)
+    # Only where light is left over around a particle (a hidden one's share of the aperture).
+    c_probe = np.abs(1.0 - 1.0 / (fit.alpha - shadow_probe))
+    pitch = float(np.hypot(*table.basis_m[:, 0]))
+    left = unexplained_light(fitter.image, table, fit.sx_m, fit.sy_m, c_probe * table.aperture_radius_m + pitch,
+                             background=fitter.background, explained=explained, floor=0.3 * fitter.min_intensity)
+    own = fit.intensity * np.maximum(fit.n_lit, 1)
+    parents = np.flatnonzero(left > probe_light * own)
+    probes = refined.take(np.r_[parents, parents])
+    probes = dataclasses.replace(probes, alpha=np.r_[refined.alpha[parents] - shadow_probe,
+                                                     refined.alpha[parents] + shadow_probe])
+    parent_intensity = np.r_[fit.intensity[parents], fit.intensity[parents]]
+    psx, psy = fitter.grid.to_lens_plane(probes.x, probes.y)
+    # Crowds probe many: the coarse pass's pixel centres only.
+    pfit = fitter.fit(psx, psy, probes.alpha, alpha_half_range=probe_half_range, n_alpha=17, subtract=explained,
+                      fine=(9, 0.25, 3, 3))
+    log.debug("shadow probes: %d of %d particles probed", parents.size, len(refined))
+    # A probe must be a particle of its own: as bright as a good part of the one it hides behind
+    # (what is left of a neighbour's imperfectly modelled light is a tenth of it or less).
+    good = np.flatnonzero(pfit.intensity >= probe_fraction * parent_intensity)
+    probes, pfit = accept(fitter, probes.take(good), take_fit(pfit, good), min(fitter.max_residual, probe_residual))
+    if len(probes) == 0:
+        return refined, fit
+    both, both_fit = concat_peaks(refined, probes), concat_fits(fit, pfit)
+    # Found particles win over probes that converged onto them.
+    priority = np.r_[fit.intensity + 1e12, pfit.intensity]
+    kept = unique_indices(both, radius_px=fitter.merge_radius_px, alpha_tolerance=fitter.merge_alpha,
+                          priority=priority)
+    return both.take(kept), take_fit(both_fit, kept)
+
+
+def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit]:
+    """Refit every particle with its neighbours' fitted light taken off its pixels.
+
+    Each first fit saw its neighbours' light too (crowds: the blurs of particles a pitch or two
+    apart overlap), which pulls position and depth; the refit starts from the first fit. A
+    particle whose refit finds no light of its own keeps its first fit.
+    """
+    new = fitter.fit(fit.sx_m, fit.sy_m, fit.alpha, subtract=fitter.render(fit), own=fit)
+    ok = np.flatnonzero(new.intensity > 0)
+    return replace_fits(fitter.grid, peaks, fit, ok, take_fit(new, ok))
+
+
+def apply_depth_prior(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit]:
+    """Refit the particles whose pixels leave the depth open, with their neighbours' surface as prior.
+
+    Only where the prior is narrower than the spread the pixels allow
+    (:func:`analysis.depth_prior.neighbour_prior`); the others keep their fit.
+    """
+    prior = neighbour_prior(peaks.x, peaks.y, fit.alpha, fit.alpha_spread)
+    todo = np.flatnonzero(np.isfinite(prior.sigma) & (fit.alpha_spread > prior.sigma))
+    log.debug("depth prior: %d of %d particles refitted", todo.size, len(peaks))
+    if todo.size == 0:
+        return peaks, fit
+    sub = take_fit(fit, todo)
+    new = fitter.fit(sub.sx_m, sub.sy_m, sub.alpha, subtract=fitter.render(fit), own=sub,
+                     prior_alpha=prior.alpha[todo], prior_sigma=prior.sigma[todo])
+    ok = np.flatnonzero(new.intensity > 0)
+    return replace_fits(fitter.grid, peaks, fit, todo[ok], take_fit(new, ok))
+
+
+def accept(fitter: RayFitter, peaks: Peaks, fit: RayFit, max_residual: float) -> tuple[Peaks, RayFit]:
+    """Peaks moved to their fitted position and depth, keeping fits with light and a small misfit."""
+    moved = _moved(fitter.grid, peaks, fit)
+    keep = np.flatnonzero((fit.intensity > max(fitter.min_intensity, 0.0)) & (fit.residual <= max_residual))
+    return moved.take(keep), take_fit(fit, keep)
+
+
+def replace_fits(grid: ImageGrid, peaks: Peaks, fit: RayFit, rows: np.ndarray, new: RayFit) -> tuple[Peaks, RayFit]:
+    """``fit`` with ``rows`` replaced by the rows of ``new``, and the peaks moved to match."""
+    merged = RayFit(**{name: getattr(fit, name).copy() for name in fit.__dataclass_fields__})
+    for name in fit.__dataclass_fields__:
+        getattr(merged, name)[rows] = getattr(new, name)
+    return _moved(grid, peaks, merged), merged
+
+
+def inside(peaks: Peaks, fit: RayFit, alphas: np.ndarray) -> tuple[Peaks, RayFit]:
+    """Drop fits that left the stack's alpha range: they found a particle of another range."""
+    keep = np.flatnonzero((peaks.alpha >= alphas[0]) & (peaks.alpha <= alphas[-1]))
+    if keep.size < len(peaks):
+        return peaks.take(keep), take_fit(fit, keep)
+    return peaks, fit
+
+
+def residual_image(image: np.ndarray, table: LightFieldTable, explained: np.ndarray) -> np.ndarray:
+    """The raw image minus the light of fitted particles (``explained``, devignetted DN per table
+    sample, from :func:`analysis.ray_depth.render_fits`), clipped to the 12-bit range."""
+    out = np.array(image, dtype=np.uint16, copy=True)
+    flat = out.reshape(-1)
+    pred = explained * table.weight  # float32, one value per table sample
+    lit = np.flatnonzero(pred >= 0.5)  # only where a particle puts light: few samples, small temporaries
+    pix = table.pixel_index[lit]
+    flat[pix] = np.clip(np.rint(flat[pix] - pred[lit]), 0, 4095).astype(np.uint16)
+    return out
+
+
+def concat_peaks(a: Peaks, b: Peaks) -> Peaks:
+    return Peaks(**{name: np.concatenate([getattr(a, name), getattr(b, name)]) for name in a.__dataclass_fields__})
+
+
+def concat_fits(a: RayFit, b: RayFit) -> RayFit:
+    return RayFit(**{name: np.concatenate([getattr(a, name), getattr(b, name)]) for name in a.__dataclass_fields__})
+
+
+def take_fit(fit: RayFit, index: np.ndarray) -> RayFit:
+    return RayFit(**{name: getattr(fit, name)[index] for name in fit.__dataclass_fields__})
+
+
+def _moved(grid: ImageGrid, peaks: Peaks, fit: RayFit) -> Peaks:
+    x, y = grid.to_pixels(fit.sx_m, fit.sy_m)
+    return dataclasses.replace(peaks, x=np.asarray(x, float), y=np.asarray(y, float), alpha=fit.alpha,
+                               residual=fit.residual)
