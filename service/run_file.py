@@ -27,8 +27,10 @@ them), with a log warning. A whole-file rewrite never needs the marker: the rena
 Readers must hold the same lock as writers (:class:`service.store.Store` takes a thread lock
 and an ``flock`` on ``.<run>.lock``), and should go through :func:`read_run_table` or
 :func:`copy_run_file`, which repair a damaged file first. HDF5's own file locking keeps
-outside readers safe too: while an append is under way they cannot open the file, and while
-one holds it open the next update rewrites and renames instead of appending.
+outside h5py readers safe too: while an append is under way they cannot open the file, and
+while one holds it open the next update rewrites and renames instead of appending. Only a
+reader that bypasses the locks (``cp``, ``rsync``, HDF5 locking turned off) can catch an append
+half-done: copy a run file through the API (:func:`copy_run_file` under the lock) instead.
 """
 
 from __future__ import annotations

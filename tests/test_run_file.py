@@ -368,3 +368,15 @@ def test_a_snapshot_is_a_whole_copy_that_later_appends_leave_alone(store: Store)
             assert list(f["entry/exposures/frame"][()]) == [0, 1, 2]
     finally:
         copy.unlink()
+
+
+def test_a_file_held_open_in_this_process_is_replaced_not_changed_under_the_reader(store: Store) -> None:
+    records = [_record(store, f) for f in range(3)]
+    outputs = {0: _output(0, 2), 1: _output(1, 3)}
+    for f in (0, 1):
+        store.update_run_file(records[f], outputs[f])
+    with h5py.File(store.run_path("r"), "r") as held:  # HDF5 refuses a second, writing open here
+        outputs[2] = _output(2, 4)
+        assert store.update_run_file(records[2], outputs[2]) == "rewritten"
+        assert held["entry/data/Z"].shape == (5,)
+    _assert_run(store, outputs)
