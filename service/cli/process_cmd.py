@@ -86,6 +86,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help=f"linking radius across slices, output pixels (default {d.link_radius_px})")
     g.add_argument("--min-prominence", type=float, default=d.min_prominence,
                    help=f"a second maximum of a curve counts above this fraction (default {d.min_prominence})")
+    g.add_argument("--no-depth-prior", action="store_true",
+                   help="depth from each particle's own pixels only: no prior from neighbours on one surface "
+                        "for particles whose light falls in one micro-lens (their alpha_std stays wide)")
 
     g = p.add_argument_group("physical coordinates (default: the metadata's thin-lens model)")
     g.add_argument("--pixel-size-mm", type=float, default=None, help="object-space size of an output pixel")
@@ -104,6 +107,7 @@ def params_from_args(args: argparse.Namespace) -> Any:
         aperture_fraction=args.aperture_fraction, blur_sigma_px=args.blur_sigma,
         grid_oversample=args.grid_oversample, threshold=args.threshold, threshold_sigma=args.threshold_sigma,
         min_pixels=args.min_pixels, link_radius_px=args.link_radius, min_prominence=args.min_prominence,
+        depth_prior=not args.no_depth_prior,
         pixel_size_mm=args.pixel_size_mm, depth_per_alpha_mm=args.depth_per_alpha_mm,
         reference_alpha=args.reference_alpha, reference_z_mm=args.reference_z_mm)
 
