@@ -2,17 +2,21 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
 from analysis.calibration import load_calibration
+from analysis.camera_model import CameraModel
 from analysis.exposure import read_exposure
+from analysis.lightfield import build_table_from_model
 from analysis.particle_table import read_csv
 from analysis.pipeline import FIT_TABLE_RIM_PX, get_table
-from analysis.ray_depth import aperture_per_lens_plane, fit_rays
+from analysis.ray_depth import (_gather, _grid_costs, _index, _lit_fraction, _pixel_footprint, _uv, _weight,
+                                aperture_per_lens_plane, fit_rays)
 from analysis.refocus import select_samples
-from analysis.simulate import write_scenario
+from analysis.scenarios import Particles
+from analysis.sim_camera import simulated_camera_metadata
+from analysis.simulate import render_exposure, white_coverage, write_scenario
 from simulated_case import mean_nn_mm
 
 
@@ -147,3 +151,65 @@ def test_refit_with_neighbours_light_taken_off_keeps_isolated_particles(scene):
     assert np.median(np.abs(again.alpha - first.alpha)) < 1e-4
     # Without adding its own light back, a particle's pixels are (nearly) empty.
     assert np.median(gone.intensity) < 0.3 * np.median(first.intensity)
+
+
+def _reference_costs(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, n_lat, pitch, normals,
+                     half_sq, neigh_u, neigh_s, sub, r_ap2):
+    costs = []
+    sum_v2 = float(np.sum(values[ptr[0]:ptr[-1]] ** 2))
+    for ic in range(n_c):
+        c = c_lo + (c_hi - c_lo) * ic / max(n_c - 1, 1)
+        reach = abs(c) * np.sqrt(r_ap2) + 1.8 * pitch
+        for iy in range(n_lat):
+            for ix in range(n_lat):
+                sx = sx0 - half_lat + 2.0 * half_lat * ix / max(n_lat - 1, 1)
+                sy = sy0 - half_lat + 2.0 * half_lat * iy / max(n_lat - 1, 1)
+                s_vf = s_ff = 0.0
+                for lens in range(centres.shape[0]):
+                    if np.hypot(centres[lens, 0] - sx, centres[lens, 1] - sy) > reach:
+                        continue
+                    for j in range(ptr[lens], ptr[lens + 1]):
+                        f = _lit_fraction(uv[j, 0], uv[j, 1], centres[lens, 0], centres[lens, 1], sx, sy, c, normals,
+                                          half_sq, neigh_u, neigh_s, sub, r_ap2)
+                        if f > 0.0:
+                            s_vf += values[j] * f
+                            s_ff += f * f
+                costs.append(sum_v2 - s_vf * s_vf / s_ff if s_ff > 0 and s_vf > 0 else sum_v2)
+    return np.array(costs)
+
+
+@pytest.mark.parametrize("blur, points", [(0.4, 1), (1.1, 3), (2.5, 3), (-1.1, 3), (-2.5, 2)])
+def test_grid_costs_match_the_model_one_candidate_at_a_time(blur, points):
+    model = CameraModel.from_metadata(simulated_camera_metadata(size=480))
+    optics = model.optics
+    table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
+    idx = _index(table)
+    s_hat = 0.13 * table.basis_m[:, 0] + 0.07 * table.basis_m[:, 1]
+    c = blur * optics.lens_pitch_m / optics.aperture_diameter_m
+    z = float(optics.z_of_alpha(1.0 / (1.0 - c)))
+    one = Particles(np.array([s_hat[0] * z / optics.exit_pupil_m]), np.array([s_hat[1] * z / optics.exit_pupil_m]),
+                    np.array([z]), np.array([1800.0]))
+    image = render_exposure(model, one, seed=3)
+    # A grid around a start a little off the truth: positions and depths on both sides of it.
+    sx0, sy0 = s_hat[0] + 0.1 * idx.pitch_m, s_hat[1] - 0.05 * idx.pitch_m
+    c_lo, c_hi = c - 0.3 * abs(c) - 5e-4, c + 0.25 * abs(c) + 5e-4  # blur +-30 % and +-0.3 pitch
+    reach = max(abs(c_lo), abs(c_hi)) * idx.radius_m + 1.6 * idx.pitch_m
+    lens_ptr, sample_ptr, ids, centres = _gather(idx, np.array([sx0]), np.array([sy0]), np.array([reach]))
+    flat = image.reshape(-1)
+    values = (flat[table.pixel_index[ids]].astype(np.float64) - table.black_level) / _weight(table, ids)
+    values -= np.median(values)  # the background: most gathered samples see none of the particle
+    uv = _uv(table, ids)
+    ratio = aperture_per_lens_plane(optics)
+    args = (centres, sample_ptr, uv, values, sx0, sy0, c_lo, c_hi, 4, 0.3 * idx.pitch_m, 3, idx.pitch_m,
+            idx.normals, idx.half_sq, idx.neighbours * ratio, idx.neighbours,
+            _pixel_footprint(points, 0.5) * idx.u_per_px, table.aperture_radius_m ** 2 * (1 + 1e-9))
+    n = 4 * 3 * 3
+    costs, cand, inten, lit = np.empty(n), np.empty((n, 3)), np.empty(n), np.empty(n)
+    _grid_costs(*args, costs, cand, inten, lit)
+    expected = _reference_costs(*args)
+    sum_v2 = float(np.sum(values**2))
+    # Most candidates put light on the particle's pixels, some explain them well (the comparison
+    # below is not one of empty sums), and they differ.
+    assert np.sum(expected < sum_v2) >= n // 2 and expected.min() < 0.5 * sum_v2
+    assert np.unique(expected).size >= n // 2
+    np.testing.assert_allclose(costs, expected, rtol=1e-12, atol=1e-12 * sum_v2)
