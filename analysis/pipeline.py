@@ -105,10 +105,10 @@ class PipelineParams:
         brightness-curve peak accounts for them: crowds, where neighbours' blobs merge into one
         component. -1 turns it off.
     fit_depths, fit_lateral
-        The depth fit's grid (:func:`analysis.ray_depth.fit_rays`): depths of the coarse pass, and
-        positions per side in both passes. Near focus depth and position are coupled (how the
-        light splits between lenses), so positions every 0.2 pitch beat more depths: 5 x 5 and 17
-        lower the depth error by a sixth (ball by a quarter) for about 1.5x the fit's time.
+        The depth fit's coarse grid (:func:`analysis.ray_depth.fit_rays`): depths, and positions
+        per side over +-0.4 pitch. Near focus depth and position are coupled (how the light splits
+        between lenses), so positions every 0.2 pitch beat more depths. The fine pass around the
+        coarse estimate is :data:`analysis.refine.FINE_GRID`.
     deblend
         Refit every particle with its neighbours' fitted light taken off its pixels
         (:func:`deblend`): in crowds their blurs overlap and pull each other's fits.

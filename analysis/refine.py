@@ -65,7 +65,7 @@ class RayFitter:
         """:func:`analysis.ray_depth.fit_rays` with these settings (``options`` override them)."""
         settings = dict(background=self.background, aperture_per_lens_plane=self.aperture_per_lens_plane,
                         alpha_half_range=self.alpha_half_range, n_alpha=self.fit_depths,
-                        coarse_lateral=self.fit_lateral, fine=fine_grid(self.fit_lateral))
+                        coarse_lateral=self.fit_lateral, fine=FINE_GRID, temperature=FINE_TEMPERATURE)
         settings.update(options)
         return fit_rays(self.image, self.table, sx_m, sy_m, alpha, **settings)
 
@@ -74,11 +74,16 @@ class RayFitter:
         return render_fits(self.table, fit, aperture_per_lens_plane=self.aperture_per_lens_plane)
 
 
-def fine_grid(lateral: int) -> tuple[int, float, int, int]:
-    """The fit's fine pass: 9 depths, ``lateral`` positions per side over +-0.25 pitch, 3 x 3 points
-    per pixel (the partly lit rim pixels of the neighbouring lenses tell a blur of about one pitch
-    in front of focus from one behind it only when each pixel's area is modelled)."""
-    return (9, 0.25, lateral, 3)
+#: The fit's fine pass (:func:`analysis.ray_depth.fit_rays`): 9 depths, 11 positions per side over
+#: +-0.25 pitch (0.05 pitch apart: near focus depth and position are coupled through how the light
+#: splits between lenses, so the position must be that fine), each pixel as 5 x 5 points (the
+#: partly lit rim pixels of the neighbouring lenses tell a blur of about a pitch in front of focus
+#: from one behind it only when pixel areas are modelled).
+FINE_GRID = (9, 0.25, 11, 5)
+#: With 5 x 5 points the model misses a noise-free simulated particle by 0.1-0.3 pixel (I0^2) units
+#: (3 x 3: 0.15-0.45), so candidates are weighed at that scale. Pooled over 18 simulated exposures
+#: this grid and temperature lower the depth error by a seventh (ball) to a half (layer).
+FINE_TEMPERATURE = 0.25
 
 
 def refine_peaks(fitter: RayFitter, peaks: Peaks, *, shadow_probe: float = 0.0, subtract: np.ndarray | None = None,
