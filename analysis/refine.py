@@ -143,12 +143,22 @@ def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit
     """Refit every particle with its neighbours' fitted light taken off its pixels.
 
     Each first fit saw its neighbours' light too (crowds: the blurs of particles a pitch or two
-    apart overlap), which pulls position and depth; the refit starts from the first fit. A
-    particle whose refit finds no light of its own keeps its first fit.
+    apart overlap), which pulls position and depth; the refit starts from the first fit. A fit
+    that is left without enough light of its own, or that no longer fits, was a neighbour's light
+    seen twice (a duplicate, or a ghost at another depth) and is dropped.
     """
     new = fitter.fit(fit.sx_m, fit.sy_m, fit.alpha, subtract=fitter.render(fit), own=fit)
-    ok = np.flatnonzero(new.intensity > 0)
-    return replace_fits(fitter.grid, peaks, fit, ok, take_fit(new, ok))
+    ok = _acceptable(fitter, new, fitter.max_residual)
+    if not ok.all():
+        # The dropped fits' light was taken off their neighbours' pixels too: refit those without it.
+        near = ok & _overlapping(fitter.table, fit, ~ok)
+        keep = np.flatnonzero(ok)
+        peaks, fit, new, near = peaks.take(keep), take_fit(fit, keep), take_fit(new, keep), near[keep]
+        if near.any():
+            again = fitter.fit(fit.sx_m[near], fit.sy_m[near], fit.alpha[near], subtract=fitter.render(fit),
+                               own=take_fit(fit, near))
+            new = replace_fits(fitter.grid, peaks, new, np.flatnonzero(near), again)[1]
+    return accept(fitter, peaks, new, fitter.max_residual)
 
 
 def apply_depth_prior(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit]:
@@ -171,9 +181,21 @@ def apply_depth_prior(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Pea
 
 def accept(fitter: RayFitter, peaks: Peaks, fit: RayFit, max_residual: float) -> tuple[Peaks, RayFit]:
     """Peaks moved to their fitted position and depth, keeping fits with light and a small misfit."""
-    moved = _moved(fitter.grid, peaks, fit)
-    keep = np.flatnonzero((fit.intensity > max(fitter.min_intensity, 0.0)) & (fit.residual <= max_residual))
-    return moved.take(keep), take_fit(fit, keep)
+    keep = np.flatnonzero(_acceptable(fitter, fit, max_residual))
+    return _moved(fitter.grid, peaks, fit).take(keep), take_fit(fit, keep)
+
+
+def _overlapping(table: LightFieldTable, fit: RayFit, among: np.ndarray) -> np.ndarray:
+    """Fits whose light can share a micro-lens with that of one of the fits ``among`` (a mask)."""
+    pitch = float(np.hypot(*table.basis_m[:, 0]))
+    blur = np.abs(1.0 - 1.0 / fit.alpha) * table.aperture_radius_m  # blur radius on the MLA
+    others = np.flatnonzero(among)
+    d = np.hypot(fit.sx_m[:, None] - fit.sx_m[others], fit.sy_m[:, None] - fit.sy_m[others])
+    return np.any(d < blur[:, None] + blur[others] + 2.0 * pitch, axis=1)
+
+
+def _acceptable(fitter: RayFitter, fit: RayFit, max_residual: float) -> np.ndarray:
+    return (fit.intensity > max(fitter.min_intensity, 0.0)) & (fit.residual <= max_residual)
 
 
 def replace_fits(grid: ImageGrid, peaks: Peaks, fit: RayFit, rows: np.ndarray, new: RayFit) -> tuple[Peaks, RayFit]:

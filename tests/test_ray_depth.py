@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -213,3 +215,30 @@ def test_grid_costs_match_the_model_one_candidate_at_a_time(blur, points):
     assert np.sum(expected < sum_v2) >= n // 2 and expected.min() < 0.5 * sum_v2
     assert np.unique(expected).size >= n // 2
     np.testing.assert_allclose(costs, expected, rtol=1e-12, atol=1e-12 * sum_v2)
+
+
+def test_deblending_drops_a_particle_seen_twice(scene):
+    """A second fit of one particle's light is left with nothing of its own once the first is refitted."""
+    from analysis.depth import Peaks
+    from analysis.refine import RayFitter, concat_fits, deblend, take_fit
+
+    exposure, calibration, table, truth, nn, s_hat, noise = scene
+    ratio = aperture_per_lens_plane(calibration.model.optics)
+    first = fit_rays(exposure.image, table, s_hat[:, 0], s_hat[:, 1], truth["alpha"], background=noise.background,
+                     aperture_per_lens_plane=ratio)
+    twice = take_fit(first, np.array([0]))
+    pitch = float(np.hypot(*table.basis_m[:, 0]))
+    twice = dataclasses.replace(twice, sx_m=twice.sx_m + 0.3 * pitch, alpha=twice.alpha + 0.0015)
+    fits = concat_fits(first, twice)
+    grid = table.grid
+    x, y = grid.to_pixels(fits.sx_m, fits.sy_m)
+    n = len(fits)
+    peaks = Peaks(track=np.arange(n), alpha=fits.alpha, x=np.asarray(x, float), y=np.asarray(y, float),
+                  peak_height=np.ones(n), peak_width=np.ones(n), residual=fits.residual, prominence=np.ones(n))
+    fitter = RayFitter(exposure.image, table, grid, background=noise.background, aperture_per_lens_plane=ratio,
+                       alpha_half_range=0.004, fit_depths=17, fit_lateral=5, min_intensity=8 * noise.sigma,
+                       max_residual=0.35, merge_radius_px=1.5, merge_alpha=0.0026)
+    kept, fit = deblend(fitter, peaks, fits)
+    assert len(kept) == len(first)  # the copy is gone, every particle stays
+    assert np.all(kept.track < len(first))
+    assert np.allclose(fit.intensity, first.intensity, rtol=0.15)
