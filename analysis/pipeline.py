@@ -10,9 +10,11 @@ parameter object stored with every result::
     dets    = [detect(s, threshold=t) for s in product]   # analysis.moments
     peaks   = find_depth_peaks(link_tracks(dets), alphas) # analysis.depth
     peaks  += find_maxima(product, alphas, threshold=t)   # analysis.maxima: crowds, merged blobs
-    peaks   = refine_peaks(image, fit_table, grid, peaks, ...)  # analysis.ray_depth: forward-model
-              # fit to the raw pixels; then hidden particles (probes in front of and behind each),
-              # and a second pass over the raw image with the found particles' light taken off
+    peaks   = refine_peaks(fitter, peaks, ...)            # analysis.refine: forward-model fit to
+              # the raw pixels (analysis.ray_depth); hidden particles (probes in front of and
+              # behind each); a second pass over the raw image with the found particles' light off
+    peaks   = deblend(fitter, peaks, fit)                 # refit with the neighbours' light off
+    peaks   = apply_depth_prior(fitter, peaks, fit)       # analysis.depth_prior: one-lens particles
     X, Y, Z = to_physical(peaks.x, peaks.y, peaks.alpha, grid, ...)  # analysis.coordinates
 
 Each stage is also callable on its own; :func:`process` runs them all and :func:`process_many`
