@@ -109,13 +109,14 @@ def refine_peaks(fitter: RayFitter, peaks: Peaks, *, shadow_probe: float = 0.0, 
     # found so far off the raw samples and probe what is left, in front of and behind each.
     table = fitter.table
     explained = fitter.render(fit)
-    # Only where light is left over around a particle (a hidden one's share of the aperture).
+    # Only where light is left over around a particle (a hidden one's share of the aperture), or
+    # where a fit is much brighter than most (it may hold a hidden one's light as well).
     c_probe = np.abs(1.0 - 1.0 / (fit.alpha - shadow_probe))
     pitch = float(np.hypot(*table.basis_m[:, 0]))
     left = unexplained_light(fitter.image, table, fit.sx_m, fit.sy_m, c_probe * table.aperture_radius_m + pitch,
                              background=fitter.background, explained=explained, floor=0.3 * fitter.min_intensity)
     own = fit.intensity * np.maximum(fit.n_lit, 1)
-    parents = np.flatnonzero(left > probe_light * own)
+    parents = np.flatnonzero((left > probe_light * own) | (fit.intensity > 1.3 * np.median(fit.intensity)))
     probes = refined.take(np.r_[parents, parents])
     probes = dataclasses.replace(probes, alpha=np.r_[refined.alpha[parents] - shadow_probe,
                                                      refined.alpha[parents] + shadow_probe])
