@@ -185,3 +185,18 @@ def test_table_cache_keeps_the_newest_normalisation(layer, tmp_path):
     saved = load_table(table_cache_path(cache, calibration, 1.0))
     assert len(saved.normalisation_keys) == MAX_NORMALISATIONS
     assert saved.normalisation_keys == table.normalisation_keys
+
+
+def test_depth_prior_beats_what_the_pixels_alone_allow(tmp_path):
+    """Particles whose blur fits in one lens leave a floor no pixel fit can beat; the layer's prior does."""
+    from analysis.accuracy import depth_floor
+
+    c = simulated_case(tmp_path, "tilted-layer", 3, size=1200)
+    count, floor = depth_floor(c.truth, c.exposure.model.lattice, nn_mm=c.nn_mm)
+    assert count >= 3 and floor > 0.03  # this crop holds several such particles
+    with_prior = score(process(c.exposure, c.calibration, cache_dir=c.cache).particles, c.truth, nn_mm=c.nn_mm)
+    alone = score(process(c.exposure, c.calibration, PipelineParams(depth_prior=False), cache_dir=c.cache).particles,
+                  c.truth, nn_mm=c.nn_mm)
+    assert with_prior.recall == alone.recall == 1.0
+    assert with_prior.depth_abs_rms_over_nn < 0.5 * floor
+    assert alone.depth_abs_rms_over_nn > 0.8 * floor  # without it, the floor holds
