@@ -117,8 +117,8 @@ class PipelineParams:
     depth_prior
         Where a particle's pixels leave its depth open (its light falls in one micro-lens) and its
         neighbours lie on one surface, take the depth that surface predicts as a prior
-        (:func:`apply_depth_prior`, :mod:`analysis.depth_prior`). Off in a 3D crowd by itself;
-        turn it off to measure out-of-surface motion of such particles from their pixels alone.
+        (:func:`apply_depth_prior`, :mod:`analysis.depth_prior`); in a 3D crowd no surface fits and
+        it does nothing. Turn it off to measure out-of-surface motion from the pixels alone.
     merge_slices
         Refined particles closer than ``link_radius_px`` in the image and this many slices in alpha
         are one particle (the brighter kept): candidates of one particle converge there.
