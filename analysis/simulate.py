@@ -401,7 +401,8 @@ def mean_nn_distance_mm(particles: Particles) -> float:
 
 def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count: int = 1, size: int = F01_SIZE,
                    brightness_dn: float = 1800.0, background_dn: float = 40.0, serial: str = DEFAULT_SERIAL,
-                   progress: Callable[[str], None] | None = None) -> SimulationFiles:
+                   centre_z_mm: float | None = None, progress: Callable[[str], None] | None = None
+                   ) -> SimulationFiles:
     """Simulate a scenario and write it as the camera's files, with its truth.
 
     Writes ``IMG_nnnn.lfp``, ``IMG_nnnn.RAW`` + ``.TXT`` and ``IMG_nnnn.truth.csv`` for each of
@@ -424,6 +425,10 @@ def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count:
         Median particle brightness and plasma glow (see `make_scenario`).
     serial : str
         Camera serial written into every file's private metadata.
+    centre_z_mm : float, optional
+        Distance of the cluster's centre from the lens (see `make_scenario`; default: the focus
+        distance, give or take 0.3 mm). Placing it a few mm off focus keeps every particle's
+        blur above a lens pitch, so none lights a single micro-lens.
     progress : callable, optional
         Called with a line of text before each long step.
 
@@ -439,7 +444,8 @@ def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count:
     out = Path(out_dir)
     (out / "calibration").mkdir(parents=True, exist_ok=True)
     private = simulated_private_metadata(serial)
-    scenario = make_scenario(scenario_name, seed, brightness_dn=brightness_dn, background_dn=background_dn)
+    scenario = make_scenario(scenario_name, seed, brightness_dn=brightness_dn, background_dn=background_dn,
+                             centre_z_mm=centre_z_mm)
     metadata = simulated_camera_metadata(lens=DEFAULT_LENS, size=size)
     model = CameraModel.from_metadata(metadata)
     files = SimulationFiles(out_dir=out)

@@ -447,3 +447,18 @@ def test_particles_nearer_than_the_focal_length_are_refused():
     model = small_model(64)
     with pytest.raises(ParameterError, match="focal length"):
         render_exposure(model, one_particle(0.0, 0.0, 5.0), seed=0)
+
+
+def test_cluster_placed_off_focus_lights_no_single_lens(tmp_path):
+    """--centre-z moves the cluster: a ball 2.6 mm in front of focus has every blur above a pitch."""
+    from analysis.accuracy import single_lens
+    from analysis.particle_table import read_csv
+
+    assert cli_main(["simulate", "--scenario", "ball", "--seed", "2", "--size", "1200", "--centre-z", "57.4",
+                     "--out", str(tmp_path), "--quiet"]) == 0
+    truth = read_csv(tmp_path / "IMG_0001.truth.csv")
+    assert truth["Z"].size > 10
+    assert abs(np.mean(truth["Z"]) - 57.4) < 1.0 and np.all(truth["alpha"] > 1.0)
+    assert np.all(truth["blur_pitches"] > 1.0)
+    lattice = read_exposure(tmp_path / "IMG_0001.lfp").model.lattice
+    assert not single_lens(truth, lattice).any()
