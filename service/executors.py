@@ -186,6 +186,18 @@ class LocalPoolExecutor:
 
 # -- Dask ------------------------------------------------------------------------------
 
+#: Event-log topic on which Dask workers report each job's progress (``(key, fraction)``).
+DASK_PROGRESS_TOPIC = "plenodust-progress"
+
+
+def _dask_run(task: JobTask, key: str) -> JobOutput:
+    """``run_task`` on a Dask worker, reporting progress through the scheduler's event log."""
+    from distributed import get_worker
+
+    worker = get_worker()
+    return run_task(task, lambda fraction: worker.log_event(DASK_PROGRESS_TOPIC, (key, float(fraction))))
+
+
 def _dask_address(spec: str) -> str:
     if spec.startswith("dask://"):
         return "tcp://" + spec[len("dask://"):]
@@ -196,8 +208,8 @@ class DaskExecutor:
     """Sends each job to an existing Dask distributed scheduler.
 
     Workers must be able to import ``plenodust`` and read the data folder at the same path
-    (a shared file system), since tasks carry paths, not bytes. Progress is reported only
-    at the start and end of a job.
+    (a shared file system), since tasks carry paths, not bytes. Workers report each stage's
+    progress as events on :data:`DASK_PROGRESS_TOPIC`, which the scheduler relays here.
     """
 
     name = "dask"
@@ -207,15 +219,26 @@ class DaskExecutor:
         self.do_warm = warm_up
         self._client = None
         self._warm = False
+        self._callbacks: dict[str, ProgressCallback] = {}
 
     @property
     def warm(self) -> bool:
         return self._warm
 
+    def _on_progress(self, event: tuple) -> None:
+        _, (key, fraction) = event
+        callback = self._callbacks.get(key)
+        if callback is not None:
+            try:
+                callback(fraction)
+            except Exception:  # a progress report must never break the client's event loop
+                log.exception("progress callback failed")
+
     async def start(self) -> None:
         from distributed import Client
 
         self._client = await Client(self.address, asynchronous=True, timeout=10)
+        self._client.subscribe_topic(DASK_PROGRESS_TOPIC, self._on_progress)
         if self.do_warm:
             await self._client.run(warm_up)
         self._warm = True
@@ -225,12 +248,15 @@ class DaskExecutor:
 
         if self._client is None:
             raise RuntimeError("executor not started")
-        future = self._client.submit(run_task, task, pure=False, key=f"plenodust-{task.exposure_id[:12]}-"
-                                     f"{uuid.uuid4().hex[:8]}")
+        key = f"plenodust-{task.exposure_id[:12]}-{uuid.uuid4().hex[:8]}"
+        if progress is not None:
+            self._callbacks[key] = progress
         try:
-            return await future
+            return await self._client.submit(_dask_run, task, key, pure=False, key=key)
         except KilledWorker as exc:
             raise WorkerLost(f"Dask workers died while processing {task.exposure_id}") from exc
+        finally:
+            self._callbacks.pop(key, None)
 
     async def close(self) -> None:
         if self._client is not None:

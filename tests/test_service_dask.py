@@ -45,3 +45,33 @@ def test_jobs_run_on_a_dask_cluster(tmp_path, cluster) -> None:
         assert_matches_truth(table["columns"], truth_xyz(sim.truth[0]))
     # The task really went through the scheduler (its prefix outlives the finished task).
     assert "plenodust" in cluster.scheduler.task_prefixes
+
+
+def test_dask_workers_report_progress_stage_by_stage(tmp_path, cluster) -> None:
+    import asyncio
+
+    from service.executors import DaskExecutor
+    from service.results import JobTask
+
+    sim = simulate(tmp_path / "sim", seed=4, count=1)
+    task = JobTask(exposure_id="0" * 40, raw_paths=(str(sim.lfp[0]),), calibration_dir=str(sim.calibration_dir),
+                   calibration_cache_dir=str(tmp_path / "cache"))
+    seen: list[float] = []
+
+    async def go():
+        executor = DaskExecutor(cluster.scheduler_address, warm_up=False)
+        await executor.start()
+        try:
+            output = await executor.run(task, seen.append)
+            # Events travel through the scheduler: give the last ones a moment.
+            deadline = time.monotonic() + 10
+            while (not seen or seen[-1] < 1.0) and time.monotonic() < deadline:
+                await asyncio.sleep(0.05)
+            return output
+        finally:
+            await executor.close()
+
+    output = asyncio.run(go())
+    assert output.particles > 0
+    assert any(0.0 < f < 1.0 for f in seen), seen  # stages in between, not just start and end
+    assert seen == sorted(seen) and seen[-1] == 1.0
