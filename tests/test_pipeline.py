@@ -200,3 +200,14 @@ def test_depth_prior_beats_what_the_pixels_alone_allow(tmp_path):
     assert with_prior.recall == alone.recall == 1.0
     assert with_prior.depth_abs_rms_over_nn < 0.5 * floor
     assert alone.depth_abs_rms_over_nn > 0.8 * floor  # without it, the floor holds
+
+
+def test_finer_output_grid_finds_the_same_particles(layer, layer_result):
+    """Two output pixels per lens: coordinates in the finer grid's pixels, same particles in mm."""
+    _, exposure, calibration, truth, nn, cache = layer
+    fine = process(exposure, calibration, PipelineParams(grid_oversample=2.0), cache_dir=cache)
+    assert fine.grid.width > 1.8 * layer_result.grid.width
+    s = score(fine.particles, truth, nn_mm=nn)
+    assert s.recall >= 0.9 and s.precision >= 0.9
+    assert s.lateral_rms_over_nn < 0.03 and s.depth_abs_rms_over_nn < 0.15
+    assert np.median(fine.particles["x"]) > 1.8 * np.median(layer_result.particles["x"])
