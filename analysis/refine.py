@@ -146,8 +146,14 @@ def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit
     Each first fit saw its neighbours' light too (crowds: the blurs of particles a pitch or two
     apart overlap), which pulls position and depth; the refit starts from the first fit. A fit
     that is left without enough light of its own, or that no longer fits, was a neighbour's light
-    seen twice (a duplicate, or a ghost at another depth) and is dropped.
+    seen twice (a duplicate, or a ghost at another depth) and is dropped. Such fits are screened
+    out first by a cheaper refit (:func:`seen_twice`), so the others are refitted once without
+    their light rather than twice.
     """
+    twice = seen_twice(fitter, fit)
+    if twice.any():
+        keep = np.flatnonzero(~twice)
+        peaks, fit = peaks.take(keep), take_fit(fit, keep)
     new = fitter.fit(fit.sx_m, fit.sy_m, fit.alpha, subtract=fitter.render(fit), own=fit)
     ok = _acceptable(fitter, new, fitter.max_residual)
     if not ok.all():
@@ -155,11 +161,45 @@ def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit
         near = ok & _overlapping(fitter.table, fit, ~ok)
         keep = np.flatnonzero(ok)
         peaks, fit, new, near = peaks.take(keep), take_fit(fit, keep), take_fit(new, keep), near[keep]
+        log.debug("deblend: %d fits dropped, %d neighbours refitted", (~ok).sum(), near.sum())
         if near.any():
             again = fitter.fit(fit.sx_m[near], fit.sy_m[near], fit.alpha[near], subtract=fitter.render(fit),
                                own=take_fit(fit, near))
             new = replace_fits(fitter.grid, peaks, new, np.flatnonzero(near), again)[1]
     return accept(fitter, peaks, new, fitter.max_residual)
+
+
+#: The screen's refit (:func:`seen_twice`): the probes' grid, pixels as 3 x 3 points.
+SCREEN_GRID = (9, 0.25, 3, 3)
+#: With 3 x 3 points a good fit's misfit runs a little above the fine pass's, so the screen drops a
+#: fit only beyond this multiple of the misfit limit (on the off-focus ball, 1.0 also dropped two
+#: fits the full refit keeps; 1.5 none, and it finds 36-41 of the 38-42 the full refit drops).
+SCREEN_RESIDUAL = 1.5
+
+
+def seen_twice(fitter: RayFitter, fit: RayFit) -> np.ndarray:
+    """Fits whose light another fit already explains (a mask): refitted on the grid
+    :data:`SCREEN_GRID` with the others' light taken off, they keep too little light or misfit it.
+
+    Only fits whose blur disk overlaps another's by at least the larger one's radius are refitted:
+    duplicates lie within a pitch or two of the fit of their particle, mostly with wide blurs.
+    """
+    twice = np.zeros(len(fit), dtype=bool)
+    if len(fit) < 2:
+        return twice
+    pitch = float(np.hypot(*fitter.table.basis_m[:, 0]))
+    blur = np.abs(1.0 - 1.0 / fit.alpha) * fitter.table.aperture_radius_m
+    d = np.hypot(fit.sx_m[:, None] - fit.sx_m, fit.sy_m[:, None] - fit.sy_m)
+    np.fill_diagonal(d, np.inf)
+    suspects = np.flatnonzero(np.any(d < np.maximum(blur[:, None], blur) + pitch, axis=1))
+    if suspects.size == 0:
+        return twice
+    sub = take_fit(fit, suspects)
+    screen = fitter.fit(sub.sx_m, sub.sy_m, sub.alpha, subtract=fitter.render(fit), own=sub, fine=SCREEN_GRID)
+    twice[suspects] = ((screen.intensity <= max(fitter.min_intensity, 0.0))
+                       | (screen.residual > SCREEN_RESIDUAL * fitter.max_residual))
+    log.debug("deblend screen: %d of %d fits refitted, %d seen twice", suspects.size, len(fit), twice.sum())
+    return twice
 
 
 def apply_depth_prior(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit]:
