@@ -623,7 +623,8 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, params: PipelineParam
     """
     if len(peaks) == 0:
         return None
-    residual = residual_image(fitter.image, fitter.table, fitter.render(fit))
+    explained = fitter.render(fit)
+    residual = residual_image(fitter.image, fitter.table, explained)
     rs = select_samples(residual, table, noise_sigmas=params.noise_sigmas)
     rstack = refocus_stack(residual, table, alphas, grid=fitter.grid, samples=rs)
     rsub = subaperture_image(residual, table, fraction=params.aperture_fraction, blur_sigma_px=params.blur_sigma_px,
@@ -635,7 +636,7 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, params: PipelineParam
     log.debug("another pass: %d candidates", len(new))
     if len(new) == 0:
         return None
-    new, new_fit = inside(*refine_peaks(fitter, new, subtract=fitter.render(fit)), alphas)
+    new, new_fit = inside(*refine_peaks(fitter, new, subtract=explained), alphas)
     # As for hidden particles: a new one must fit well and be about as bright as the others
     # (left-over light of imperfectly modelled neighbours is a tenth of theirs or less).
     good = np.flatnonzero((new_fit.residual <= 0.2) & (new_fit.intensity >= 0.35 * np.median(fit.intensity)))

@@ -82,7 +82,10 @@ class _TableIndex:
         self.half_sq = 0.5 * np.einsum("ij,ij->i", self.normals, self.normals)
         self.pitch_m = float(np.hypot(*b1))
         u, v = table.u_m, table.v_m
-        self.radius_m = float(np.sqrt(np.max(u * u + v * v))) if u.size else 0.0
+        # In slices: a full-size table's temporaries (three of its length) would add ~40 MB.
+        step = 1 << 20
+        self.radius_m = float(np.sqrt(max((np.max(u[i:i + step] * u[i:i + step] + v[i:i + step] * v[i:i + step])
+                                           for i in range(0, u.size, step)), default=0.0)))
         # Aperture metres per sensor pixel of offset in a micro-image.
         self.u_per_px = table.aperture_radius_m / table.micro_image_radius_px
 

@@ -72,28 +72,43 @@ class RayFitter:
                         coarse_lateral=self.fit_lateral, fine=FINE_GRID, temperature=FINE_TEMPERATURE)
         settings.update(options)
         sx, sy, a = (np.asarray(v, dtype=np.float64).ravel() for v in (sx_m, sy_m, alpha))
-        if "fine" in options:
+        if a.size <= FIT_CHUNK and "fine" in options:
             return fit_rays(self.image, self.table, sx, sy, a, **settings)
-        pitch = float(np.hypot(*self.table.basis_m[:, 0]))
-        wide = np.abs(1.0 - 1.0 / a) * self.table.aperture_radius_m > WIDE_BLUR_PITCHES * pitch
-        if not wide.any():
-            return fit_rays(self.image, self.table, sx, sy, a, **settings)
-        parts, fits = [np.flatnonzero(~wide), np.flatnonzero(wide)], []
-        for rows, fine in zip(parts, (FINE_GRID, WIDE_FINE_GRID)):
-            part = dict(settings, fine=fine)
-            if part.get("own") is not None:
-                part["own"] = take_fit(part["own"], rows)
-            for name in ("prior_alpha", "prior_sigma"):
-                if part.get(name) is not None:
-                    part[name] = np.asarray(part[name]).ravel()[rows]
-            fits.append(fit_rays(self.image, self.table, sx[rows], sy[rows], a[rows], **part))
-        return take_fit(concat_fits(*fits), np.argsort(np.concatenate(parts)))
+        wide = np.zeros(a.size, dtype=bool)
+        if "fine" not in options:
+            pitch = float(np.hypot(*self.table.basis_m[:, 0]))
+            wide = np.abs(1.0 - 1.0 / a) * self.table.aperture_radius_m > WIDE_BLUR_PITCHES * pitch
+        parts, fits = [], []
+        for rows, fine in ((np.flatnonzero(~wide), settings["fine"]), (np.flatnonzero(wide), WIDE_FINE_GRID)):
+            for start in range(0, rows.size, FIT_CHUNK):
+                chunk = rows[start:start + FIT_CHUNK]
+                part = dict(settings, fine=fine)
+                if part.get("own") is not None:
+                    part["own"] = take_fit(part["own"], chunk)
+                for name in ("prior_alpha", "prior_sigma"):
+                    if part.get(name) is not None:
+                        part[name] = np.asarray(part[name]).ravel()[chunk]
+                parts.append(chunk)
+                fits.append(fit_rays(self.image, self.table, sx[chunk], sy[chunk], a[chunk], **part))
+        if len(fits) <= 1:
+            return fits[0] if fits else fit_rays(self.image, self.table, sx, sy, a, **settings)
+        joined = RayFit(**{name: np.concatenate([getattr(f, name) for f in fits])
+                           for name in RayFit.__dataclass_fields__})
+        return take_fit(joined, np.argsort(np.concatenate(parts)))
 
     def render(self, fit: RayFit) -> np.ndarray:
         """The light of fitted particles on each table sample (:func:`analysis.ray_depth.render_fits`)."""
-        return render_fits(self.table, fit, aperture_per_lens_plane=self.aperture_per_lens_plane)
+        out = np.zeros(self.table.n_samples, dtype=np.float32)
+        for start in range(0, len(fit), FIT_CHUNK):  # in particle order, as one call would add them
+            chunk = take_fit(fit, np.arange(start, min(start + FIT_CHUNK, len(fit))))
+            render_fits(self.table, chunk, aperture_per_lens_plane=self.aperture_per_lens_plane, out=out)
+        return out
 
 
+#: Particles per call of :func:`analysis.ray_depth.fit_rays` and :func:`~analysis.ray_depth.render_fits`:
+#: each call gathers the samples of every lens its particles reach, ~10 000 per particle blurred over
+#: a few pitches (32 bytes each), so one call for 200 such particles held ~70 MB at once.
+FIT_CHUNK = 64
 #: The fit's fine pass (:func:`analysis.ray_depth.fit_rays`): 9 depths, 11 positions per side over
 #: +-0.25 pitch (0.05 pitch apart: near focus depth and position are coupled through how the light
 #: splits between lenses, so the position must be that fine), each pixel as 5 x 5 points (the
@@ -288,10 +303,12 @@ def residual_image(image: np.ndarray, table: LightFieldTable, explained: np.ndar
     sample, from :func:`analysis.ray_depth.render_fits`), clipped to the 12-bit range."""
     out = np.array(image, dtype=np.uint16, copy=True)
     flat = out.reshape(-1)
-    pred = explained * table.weight  # float32, one value per table sample
-    lit = np.flatnonzero(pred >= 0.5)  # only where a particle puts light: few samples, small temporaries
+    # Only where a particle puts light (few samples): no temporaries of the table's length.
+    lit = np.flatnonzero(explained)
+    pred = explained[lit] * table.weight[lit]  # float32
+    lit, pred = lit[pred >= 0.5], pred[pred >= 0.5]
     pix = table.pixel_index[lit]
-    flat[pix] = np.clip(np.rint(flat[pix] - pred[lit]), 0, 4095).astype(np.uint16)
+    flat[pix] = np.clip(np.rint(flat[pix] - pred), 0, 4095).astype(np.uint16)
     return out
 
 
