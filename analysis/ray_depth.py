@@ -835,11 +835,44 @@ def _lit_fraction(u0, v0, cx, cy, sx, sy, c, normals, half_sq, neigh_u, neigh_s,
 def _render(centres, sample_ptr, lens_ptr, uv, sx, sy, c, intensity, normals, half_sq, neigh_u, neigh_s,
             sub, r_ap2, out):
     # Each particle writes only its own gathered samples, so particles run in parallel.
+    s_max = 0.0
+    for q in range(sub.shape[0]):
+        s_max = max(s_max, np.sqrt(sub[q, 0] * sub[q, 0] + sub[q, 1] * sub[q, 1]))
+    # Samples whose footprint lies within the aperture (no crosstalk) and whose central ray lands
+    # beyond a side of the cell by more than the footprint's reach are dark: skipped, as
+    # _lit_fraction would find none of their points in the cell (most of a wide blur's samples).
+    inner = max(np.sqrt(r_ap2) - s_max, 0.0)
+    inner2 = inner * inner * (1.0 - 1e-9)
+    norm_t = np.empty(3)
+    for t in range(3):
+        norm_t[t] = np.sqrt(normals[t, 0] * normals[t, 0] + normals[t, 1] * normals[t, 1])
     for p in prange(sx.size):
         if intensity[p] <= 0.0:
             continue
+        reach_t = np.empty(3)
+        shift_t = np.zeros((7, 3))  # along each normal: the own ray (row 0), and the crosstalk rays
+        for t in range(3):
+            reach_t[t] = half_sq[t] + abs(c[p]) * s_max * norm_t[t] * (1.0 + 1e-9) + 1e-9 * norm_t[t] ** 2
+            for nb in range(6):
+                shift_t[nb + 1, t] = ((c[p] * neigh_u[nb, 0] - neigh_s[nb, 0]) * normals[t, 0]
+                                      + (c[p] * neigh_u[nb, 1] - neigh_s[nb, 1]) * normals[t, 1])
         for lens in range(lens_ptr[p], lens_ptr[p + 1]):
             for j in range(sample_ptr[lens], sample_ptr[lens + 1]):
+                ox = sx[p] + c[p] * uv[j, 0] - centres[lens, 0]
+                oy = sy[p] + c[p] * uv[j, 1] - centres[lens, 1]
+                p0 = ox * normals[0, 0] + oy * normals[0, 1]
+                p1 = ox * normals[1, 0] + oy * normals[1, 1]
+                p2 = ox * normals[2, 0] + oy * normals[2, 1]
+                # Near the rim a point may see a neighbour's aperture: its ray is shifted.
+                n_rays = 1 if uv[j, 0] * uv[j, 0] + uv[j, 1] * uv[j, 1] <= inner2 else 7
+                near = False
+                for w in range(n_rays):
+                    if (abs(p0 + shift_t[w, 0]) <= reach_t[0] and abs(p1 + shift_t[w, 1]) <= reach_t[1]
+                            and abs(p2 + shift_t[w, 2]) <= reach_t[2]):
+                        near = True
+                        break
+                if not near:
+                    continue
                 f = _lit_fraction(uv[j, 0], uv[j, 1], centres[lens, 0], centres[lens, 1], sx[p], sy[p], c[p],
                                   normals, half_sq, neigh_u, neigh_s, sub, r_ap2)
                 if f > 0.0:

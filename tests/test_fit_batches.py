@@ -1,0 +1,108 @@
+"""The depth stages' batching: rendering skips only dark samples, fits in chunks and by blur width
+give what one call of the fit gives."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import analysis.refine as refine
+from analysis.camera_model import CameraModel
+from analysis.lightfield import build_table_from_model
+from analysis.pipeline import FIT_TABLE_RIM_PX
+from analysis.ray_depth import (RayFit, _gather, _index, _lit_fraction, _pixel_footprint, _uv, aperture_per_lens_plane,
+                                fit_rays, render_fits)
+from analysis.refine import FINE_GRID, FINE_TEMPERATURE, WIDE_FINE_GRID, RayFitter
+from analysis.scenarios import Particles
+from analysis.sim_camera import simulated_camera_metadata
+from analysis.simulate import render_exposure, white_coverage
+
+# Blurs (radius on the MLA, lens pitches; negative: behind focus) from one lens to a wide disk.
+BLURS = np.array([0.3, -0.8, 1.4, -2.6, 3.5, 6.0])
+
+
+@pytest.fixture(scope="module")
+def scene():
+    model = CameraModel.from_metadata(simulated_camera_metadata(size=480))
+    optics = model.optics
+    table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
+    idx = _index(table)
+    # Spread out along a line through the centre, off the lens centres.
+    t = np.linspace(-0.6, 0.6, BLURS.size)
+    s_hat = np.column_stack([t * 40 * idx.pitch_m + 0.13 * idx.pitch_m, 0.3 * t * 40 * idx.pitch_m - 0.07 * idx.pitch_m])
+    c = BLURS * optics.lens_pitch_m / (0.5 * optics.aperture_diameter_m)
+    z = np.array([float(optics.z_of_alpha(1.0 / (1.0 - ci))) for ci in c])
+    particles = Particles(s_hat[:, 0] * z / optics.exit_pupil_m, s_hat[:, 1] * z / optics.exit_pupil_m, z,
+                          np.full(BLURS.size, 1800.0))
+    image = render_exposure(model, particles, seed=5)
+    alpha = 1.0 / (1.0 - c)
+    return model, table, image, s_hat, alpha
+
+
+def test_render_matches_the_model_sample_by_sample(scene):
+    model, table, _, s_hat, alpha = scene
+    ratio = aperture_per_lens_plane(model.optics)
+    idx = _index(table)
+    fit = RayFit(sx_m=s_hat[:, 0], sy_m=s_hat[:, 1], alpha=alpha, intensity=np.linspace(500.0, 900.0, alpha.size),
+                 n_lit=np.zeros(alpha.size, np.int64), residual=np.zeros(alpha.size), alpha_spread=np.zeros(alpha.size))
+    out = render_fits(table, fit, aperture_per_lens_plane=ratio)
+    # Every sample within reach of each particle, through the model one sample at a time.
+    reach = np.abs(1.0 - 1.0 / alpha) * idx.radius_m + 1.8 * idx.pitch_m
+    lens_ptr, sample_ptr, ids, centres = _gather(idx, fit.sx_m, fit.sy_m, reach)
+    uv = _uv(table, ids)
+    sub = _pixel_footprint(3, 0.5) * idx.u_per_px
+    expected = np.zeros(table.n_samples, dtype=np.float32)
+    for p in range(len(fit)):
+        c = 1.0 - 1.0 / alpha[p]
+        for lens in range(lens_ptr[p], lens_ptr[p + 1]):
+            for j in range(sample_ptr[lens], sample_ptr[lens + 1]):
+                f = _lit_fraction(uv[j, 0], uv[j, 1], centres[lens, 0], centres[lens, 1], fit.sx_m[p], fit.sy_m[p], c,
+                                  idx.normals, idx.half_sq, idx.neighbours * ratio, idx.neighbours, sub,
+                                  table.aperture_radius_m ** 2 * (1 + 1e-9))
+                if f > 0.0:
+                    expected[ids[j]] += fit.intensity[p] * f
+    # Each particle lights about a micro-image's worth of samples, rim samples (crosstalk) included.
+    assert np.count_nonzero(expected) > 20 * alpha.size
+    np.testing.assert_array_equal(out, expected)
+
+
+def _fitter(model, table, image) -> RayFitter:
+    return RayFitter(image, table, table.grid, background=0.0, aperture_per_lens_plane=aperture_per_lens_plane(model.optics),
+                     alpha_half_range=0.004, fit_depths=17, fit_lateral=5, min_intensity=10.0, max_residual=0.35,
+                     merge_radius_px=1.5, merge_alpha=0.0026)
+
+
+def _same(a: RayFit, b: RayFit) -> None:
+    for name in RayFit.__dataclass_fields__:
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+
+
+def test_fits_in_chunks_and_by_blur_equal_single_calls(scene, monkeypatch):
+    model, table, image, s_hat, alpha = scene
+    fitter = _fitter(model, table, image)
+    pitch = float(np.hypot(*table.basis_m[:, 0]))
+    # Starts a little off the truth; wide blurs interleaved with narrow ones, so the rows must be put back in order.
+    sx, sy, a = s_hat[:, 0] + 0.1 * pitch, s_hat[:, 1] - 0.05 * pitch, alpha + 0.0007
+    monkeypatch.setattr(refine, "FIT_CHUNK", 2)
+    got = fitter.fit(sx, sy, a)
+    wide = np.abs(BLURS) > refine.WIDE_BLUR_PITCHES  # the start's 0.0007 in alpha moves a blur by ~0.2 pitch
+    assert wide.any() and (~wide).any()
+    args = dict(background=0.0, aperture_per_lens_plane=fitter.aperture_per_lens_plane, alpha_half_range=0.004,
+                n_alpha=17, coarse_lateral=5, temperature=FINE_TEMPERATURE)
+    for rows, grid in ((np.flatnonzero(~wide), FINE_GRID), (np.flatnonzero(wide), WIDE_FINE_GRID)):
+        one = fit_rays(image, table, sx[rows], sy[rows], a[rows], fine=grid, **args)
+        _same(refine.take_fit(got, rows), one)
+    # The fits found the particles (the comparison is not one of empty fits).
+    assert np.all(got.intensity > 100.0)
+    # An explicit grid applies to all, in chunks too.
+    _same(fitter.fit(sx, sy, a, fine=FINE_GRID), fit_rays(image, table, sx, sy, a, fine=FINE_GRID, **args))
+
+
+def test_render_in_chunks_equals_one_call(scene, monkeypatch):
+    model, table, image, s_hat, alpha = scene
+    fitter = _fitter(model, table, image)
+    fit = fitter.fit(s_hat[:, 0], s_hat[:, 1], alpha)
+    whole = render_fits(table, fit, aperture_per_lens_plane=fitter.aperture_per_lens_plane)
+    monkeypatch.setattr(refine, "FIT_CHUNK", 4)
+    np.testing.assert_array_equal(fitter.render(fit), whole)
+    assert np.count_nonzero(whole) > 20 * len(fit)
