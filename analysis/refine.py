@@ -61,25 +61,29 @@ class RayFitter:
     merge_radius_px: float
     merge_alpha: float
 
-    def fit(self, sx_m: np.ndarray, sy_m: np.ndarray, alpha: np.ndarray, **options) -> RayFit:
+    def fit(self, sx_m: np.ndarray, sy_m: np.ndarray, alpha: np.ndarray, *,
+            wide_fine: tuple[int, float, int, int] | None = None, **options) -> RayFit:
         """:func:`analysis.ray_depth.fit_rays` with these settings (``options`` override them).
 
-        Without a ``fine`` option, particles blurred wider than :data:`WIDE_BLUR_PITCHES` at their
-        start get the fine grid :data:`WIDE_FINE_GRID`, the others :data:`FINE_GRID`.
+        Particles blurred wider than :data:`WIDE_BLUR_PITCHES` at their start get the fine grid
+        ``wide_fine`` (default: :data:`WIDE_FINE_GRID`, or the ``fine`` option when one is given),
+        the others ``fine`` (default :data:`FINE_GRID`).
         """
         settings = dict(background=self.background, aperture_per_lens_plane=self.aperture_per_lens_plane,
                         alpha_half_range=self.alpha_half_range, n_alpha=self.fit_depths,
                         coarse_lateral=self.fit_lateral, fine=FINE_GRID, temperature=FINE_TEMPERATURE)
         settings.update(options)
+        if wide_fine is None:
+            wide_fine = settings["fine"] if "fine" in options else WIDE_FINE_GRID
         sx, sy, a = (np.asarray(v, dtype=np.float64).ravel() for v in (sx_m, sy_m, alpha))
-        if a.size <= FIT_CHUNK and "fine" in options:
+        if a.size <= FIT_CHUNK and wide_fine == settings["fine"]:
             return fit_rays(self.image, self.table, sx, sy, a, **settings)
         wide = np.zeros(a.size, dtype=bool)
-        if "fine" not in options:
+        if wide_fine != settings["fine"]:
             pitch = float(np.hypot(*self.table.basis_m[:, 0]))
             wide = np.abs(1.0 - 1.0 / a) * self.table.aperture_radius_m > WIDE_BLUR_PITCHES * pitch
         parts, fits = [], []
-        for rows, fine in ((np.flatnonzero(~wide), settings["fine"]), (np.flatnonzero(wide), WIDE_FINE_GRID)):
+        for rows, fine in ((np.flatnonzero(~wide), settings["fine"]), (np.flatnonzero(wide), wide_fine)):
             for start in range(0, rows.size, FIT_CHUNK):
                 chunk = rows[start:start + FIT_CHUNK]
                 part = dict(settings, fine=fine)
@@ -128,6 +132,8 @@ WIDE_BLUR_PITCHES = 2.0
 #: with precision no lower. Fewer points per pixel (3 x 3) there lost a tenth of the precision,
 #: 0.1 pitch steps a particle or two of recall, fewer coarse depths (9-11) biased the depth scale.
 WIDE_FINE_GRID = (5, 0.15, 7, 5)
+#: The probes for hidden particles behind wide blurs: 5 depths over +-0.15 pitch, 3 x 3 points.
+WIDE_PROBE_GRID = (5, 0.15, 3, 3)
 
 
 def refine_peaks(fitter: RayFitter, peaks: Peaks, *, shadow_probe: float = 0.0, subtract: np.ndarray | None = None,
@@ -168,7 +174,7 @@ def refine_peaks(fitter: RayFitter, peaks: Peaks, *, shadow_probe: float = 0.0, 
     psx, psy = fitter.grid.to_lens_plane(probes.x, probes.y)
     # Crowds probe many: the coarse pass's pixel centres only.
     pfit = fitter.fit(psx, psy, probes.alpha, alpha_half_range=probe_half_range, n_alpha=17, subtract=explained,
-                      fine=(9, 0.25, 3, 3))
+                      fine=(9, 0.25, 3, 3), wide_fine=WIDE_PROBE_GRID)
     log.debug("shadow probes: %d of %d particles probed", parents.size, len(refined))
     # A probe must be a particle of its own: as bright as a good part of the one it hides behind
     # (what is left of a neighbour's imperfectly modelled light is a tenth of it or less).
