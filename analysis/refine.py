@@ -17,6 +17,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .depth import Peaks, unique_indices
 from .depth_prior import neighbour_prior
@@ -246,9 +247,12 @@ def seen_twice(fitter: RayFitter, fit: RayFit, explained: np.ndarray | None = No
         return twice
     pitch = float(np.hypot(*fitter.table.basis_m[:, 0]))
     blur = np.abs(1.0 - 1.0 / fit.alpha) * fitter.table.aperture_radius_m
-    d = np.hypot(fit.sx_m[:, None] - fit.sx_m, fit.sy_m[:, None] - fit.sy_m)
-    np.fill_diagonal(d, np.inf)
-    suspects = np.flatnonzero(np.any(d < np.maximum(blur[:, None], blur) + pitch, axis=1))
+    # Pairs from a tree: a crowd of thousands would make a full distance matrix hundreds of MB.
+    pairs = cKDTree(np.column_stack([fit.sx_m, fit.sy_m])).query_pairs(float(blur.max()) + pitch,
+                                                                       output_type="ndarray")
+    i, j = pairs[:, 0], pairs[:, 1]
+    close = np.hypot(fit.sx_m[i] - fit.sx_m[j], fit.sy_m[i] - fit.sy_m[j]) < np.maximum(blur[i], blur[j]) + pitch
+    suspects = np.unique(np.r_[i[close], j[close]])
     if suspects.size == 0:
         return twice
     sub = take_fit(fit, suspects)
