@@ -106,3 +106,22 @@ def test_render_in_chunks_equals_one_call(scene, monkeypatch):
     monkeypatch.setattr(refine, "FIT_CHUNK", 4)
     np.testing.assert_array_equal(fitter.render(fit), whole)
     assert np.count_nonzero(whole) > 20 * len(fit)
+
+
+def test_screen_drops_a_second_fit_of_one_particle_and_only_what_the_full_refit_drops(scene):
+    model, table, image, s_hat, alpha = scene
+    fitter = _fitter(model, table, image)
+    fit = fitter.fit(s_hat[:, 0], s_hat[:, 1], alpha)
+    assert np.all(fit.intensity > 100.0)
+    pitch = float(np.hypot(*table.basis_m[:, 0]))
+    for k in (2, BLURS.size - 1):  # a blur of about a pitch, and the widest
+        copy = refine.take_fit(fit, np.array([k]))
+        copy = RayFit(**{**{n: getattr(copy, n) for n in RayFit.__dataclass_fields__},
+                         "sx_m": copy.sx_m + 0.3 * pitch, "alpha": copy.alpha + 0.0015})
+        both = refine.concat_fits(fit, copy)
+        twice = refine.seen_twice(fitter, both)
+        full = fitter.fit(both.sx_m, both.sy_m, both.alpha, subtract=fitter.render(both), own=both)
+        kept = (full.intensity > fitter.min_intensity) & (full.residual <= fitter.max_residual)
+        assert not (twice & kept).any(), (k, twice, kept)
+        if k == 2:
+            assert twice[-1] and not twice[:-1].any(), twice
