@@ -58,7 +58,7 @@ from .moments import detect
 from .particle_table import COLUMNS, write_csv, write_hdf5
 from .ray_depth import RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
 from .refine import RayFitter, apply_depth_prior, concat_fits, concat_peaks, deblend, inside, refine_peaks, \
-    residual_image, take_fit
+    residual_image, split_shared, take_fit
 from .refocus import alphas_for_depth_range, default_alphas, products, refocus_stack, select_samples, \
     subaperture_image
 
@@ -100,7 +100,8 @@ class PipelineParams:
         around it (:func:`analysis.ray_depth.fit_rays`), searching ``alpha +- refine_alpha_range``.
     shadow_probe
         After the fit, where light is left over around a particle, look for a hidden one this far
-        in alpha in front of and behind it (0 turns it off).
+        in alpha in front of and behind it; after deblending, try splitting unusually bright fits
+        into two particles that far apart (:func:`analysis.refine.split_shared`). 0 turns both off.
     maxima_half_slices
         Also take the local maxima of the product stack over (alpha, y, x) as candidates
         (:func:`analysis.maxima.find_maxima`, footprint +-this many slices and +-1 pixel) where no
@@ -599,6 +600,8 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         if params.deblend and len(peaks) > 1:
             t = time.perf_counter()
             peaks, fit = deblend(fitter, peaks, fit)
+            if params.shadow_probe > 0:
+                peaks, fit = split_shared(fitter, peaks, fit, shadow_probe=params.shadow_probe)
             timings["deblend"] = time.perf_counter() - t
         if params.depth_prior and len(peaks) > 1:
             t = time.perf_counter()

@@ -264,6 +264,57 @@ def seen_twice(fitter: RayFitter, fit: RayFit, explained: np.ndarray | None = No
     return twice
 
 
+def split_shared(fitter: RayFitter, peaks: Peaks, fit: RayFit, *, shadow_probe: float,
+                 probe_half_range: float = 0.0025, bright: float = 1.3) -> tuple[Peaks, RayFit]:
+    """Split fits that hold the light of two particles on one line of sight.
+
+    A particle hidden behind another can give its light to the other's fit: one fit, brighter
+    than most, explains both, and no light is left over for a probe (:func:`refine_peaks`) to
+    find. For each fit brighter than ``bright`` times the median, a partner is tried
+    ``shadow_probe`` in front and behind, starting from half the light each; partner and fit
+    are refitted with each other's light taken off. The split is kept where the fit gives up
+    light to the partner and then fits its pixels much better (misfit down by 40 %).
+    """
+    parents = np.flatnonzero(fit.intensity > bright * np.median(fit.intensity)) if len(fit) else np.empty(0, int)
+    if parents.size == 0:
+        return peaks, fit
+    par = take_fit(fit, parents)
+    others = fitter.render(fit) - fitter.render(par)  # everyone's light but the parents'
+    half = dataclasses.replace(par, intensity=0.5 * par.intensity)
+    found: tuple[np.ndarray, RayFit, RayFit] | None = None
+    for sign in (-1.0, 1.0):
+        start = dataclasses.replace(half, alpha=par.alpha + sign * shadow_probe)
+        partner = fitter.fit(start.sx_m, start.sy_m, start.alpha, subtract=others + fitter.render(half),
+                             alpha_half_range=probe_half_range)
+        host = fitter.fit(par.sx_m, par.sy_m, par.alpha, subtract=others + fitter.render(partner))
+        partner = fitter.fit(partner.sx_m, partner.sy_m, partner.alpha, subtract=others + fitter.render(host),
+                             alpha_half_range=probe_half_range)
+        good = ((partner.intensity >= 0.35 * host.intensity) & (partner.residual <= 0.2)
+                & (host.intensity <= 0.85 * par.intensity) & (host.residual <= 0.6 * par.residual)
+                & (np.abs(partner.alpha - host.alpha) > fitter.merge_alpha))
+        if found is None:
+            found = (good, host, partner)
+        else:
+            # Both sides split: keep the side whose partner took more light.
+            use = good & (~found[0] | (partner.intensity > found[2].intensity))
+            found = (found[0] | good, _where(use, host, found[1]), _where(use, partner, found[2]))
+    good, host, partner = found
+    rows = np.flatnonzero(good)
+    log.debug("split: %d of %d bright fits hold two particles", rows.size, parents.size)
+    if rows.size == 0:
+        return peaks, fit
+    peaks, fit = replace_fits(fitter.grid, peaks, fit, parents[rows], take_fit(host, rows))
+    new = take_fit(partner, rows)
+    both = concat_peaks(peaks, _moved(fitter.grid, peaks.take(parents[rows]), new))
+    kept = unique_indices(both, radius_px=fitter.merge_radius_px, alpha_tolerance=fitter.merge_alpha,
+                          priority=np.r_[fit.intensity + 1e12, new.intensity])
+    return both.take(kept), take_fit(concat_fits(fit, new), kept)
+
+
+def _where(mask: np.ndarray, a: RayFit, b: RayFit) -> RayFit:
+    return RayFit(**{name: np.where(mask, getattr(a, name), getattr(b, name)) for name in RayFit.__dataclass_fields__})
+
+
 def apply_depth_prior(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit]:
     """Refit the particles whose pixels leave the depth open, with their neighbours' surface as prior.
 

@@ -242,3 +242,54 @@ def test_deblending_drops_a_particle_seen_twice(scene):
     assert len(kept) == len(first)  # the copy is gone, every particle stays
     assert np.all(kept.track < len(first))
     assert np.allclose(fit.intensity, first.intensity, rtol=0.15)
+
+
+def _line_of_sight_scene(alphas, brightness):
+    """Particles on one chief ray (a shadowing pair when two), rendered on a small simulated sensor."""
+    model = CameraModel.from_metadata(simulated_camera_metadata(size=320))
+    optics = model.optics
+    table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
+    s_hat = 0.2 * table.basis_m[:, 0] + 0.1 * table.basis_m[:, 1]
+    z = np.array([float(optics.z_of_alpha(a)) for a in alphas])
+    ps = Particles(s_hat[0] * z / optics.exit_pupil_m, s_hat[1] * z / optics.exit_pupil_m, z,
+                   np.asarray(brightness, float))
+    return model, table, s_hat, render_exposure(model, ps, seed=5)
+
+
+def _one_fit(model, table, s_hat, image, alpha0):
+    from analysis.depth import Peaks
+    from analysis.refine import RayFitter
+
+    ratio = aperture_per_lens_plane(model.optics)
+    background = float(np.median((image.astype(float) - table.black_level)))
+    fitter = RayFitter(image, table, table.grid, background=background, aperture_per_lens_plane=ratio,
+                       alpha_half_range=0.004, fit_depths=17, fit_lateral=5, min_intensity=100.0,
+                       max_residual=0.35, merge_radius_px=1.5, merge_alpha=0.0026)
+    fit = fitter.fit(np.array([s_hat[0]]), np.array([s_hat[1]]), np.array([alpha0]))
+    x, y = table.grid.to_pixels(fit.sx_m, fit.sy_m)
+    peaks = Peaks(track=np.zeros(1, np.int64), alpha=fit.alpha, x=np.atleast_1d(x).astype(float),
+                  y=np.atleast_1d(y).astype(float), peak_height=np.ones(1), peak_width=np.ones(1),
+                  residual=fit.residual, prominence=np.ones(1))
+    return fitter, peaks, fit
+
+
+def test_a_fit_holding_two_particles_on_one_line_of_sight_is_split():
+    from analysis.refine import split_shared
+
+    truth = np.array([0.99810, 1.00297])  # a pair one fit took for one particle (shadowing seed 5)
+    model, table, s_hat, image = _line_of_sight_scene(truth, [1985.0, 1900.0])
+    fitter, peaks, fit = _one_fit(model, table, s_hat, image, 1.0023)
+    assert len(fit) == 1 and fit.intensity[0] > 0
+    split, split_fit = split_shared(fitter, peaks, fit, shadow_probe=0.0065, bright=0.5)
+    assert len(split) == 2
+    assert np.allclose(np.sort(split_fit.alpha), truth, atol=4e-4)
+    assert np.all(split_fit.residual < fit.residual)
+
+
+def test_a_single_particle_is_not_split():
+    from analysis.refine import split_shared
+
+    model, table, s_hat, image = _line_of_sight_scene([1.0028], [2600.0])
+    fitter, peaks, fit = _one_fit(model, table, s_hat, image, 1.0028)
+    split, _ = split_shared(fitter, peaks, fit, shadow_probe=0.0065, bright=0.5)
+    assert len(split) == 1
