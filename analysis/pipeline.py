@@ -600,9 +600,11 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         if params.deblend and len(peaks) > 1:
             t = time.perf_counter()
             peaks, fit = deblend(fitter, peaks, fit)
-            if params.shadow_probe > 0:
-                peaks, fit = split_shared(fitter, peaks, fit, shadow_probe=params.shadow_probe)
             timings["deblend"] = time.perf_counter() - t
+            if params.shadow_probe > 0:
+                t = time.perf_counter()
+                peaks, fit = split_shared(fitter, peaks, fit, shadow_probe=params.shadow_probe)
+                timings["split"] = time.perf_counter() - t
         if params.depth_prior and len(peaks) > 1:
             t = time.perf_counter()
             peaks, fit = apply_depth_prior(fitter, peaks, fit)

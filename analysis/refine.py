@@ -265,33 +265,45 @@ def seen_twice(fitter: RayFitter, fit: RayFit, explained: np.ndarray | None = No
 
 
 def split_shared(fitter: RayFitter, peaks: Peaks, fit: RayFit, *, shadow_probe: float,
-                 probe_half_range: float = 0.0025, bright: float = 1.3) -> tuple[Peaks, RayFit]:
+                 probe_half_range: float = 0.0025, bright: float = 1.3, misfit: float = 1.0
+                 ) -> tuple[Peaks, RayFit]:
     """Split fits that hold the light of two particles on one line of sight.
 
     A particle hidden behind another can give its light to the other's fit: one fit, brighter
     than most, explains both, and no light is left over for a probe (:func:`refine_peaks`) to
-    find. For each fit brighter than ``bright`` times the median, a partner is tried
+    find. For each fit brighter than ``bright`` times the median that also misfits more than
+    ``misfit`` times the median, a partner is tried
     ``shadow_probe`` in front and behind, starting from half the light each; partner and fit
     are refitted with each other's light taken off. The split is kept where the fit gives up
     light to the partner and then fits its pixels much better (misfit down by 40 %).
     """
-    parents = np.flatnonzero(fit.intensity > bright * np.median(fit.intensity)) if len(fit) else np.empty(0, int)
+    # Two particles taken for one also misfit more than most.
+    parents = (np.flatnonzero((fit.intensity > bright * np.median(fit.intensity))
+                              & (fit.residual > misfit * np.median(fit.residual))) if len(fit) else np.empty(0, int))
     if parents.size == 0:
         return peaks, fit
     par = take_fit(fit, parents)
-    others = fitter.render(fit) - fitter.render(par)  # everyone's light but the parents'
+    # The light of the other fits that reach the parents' lenses (rendering all would cost more).
+    others = fitter.render(take_fit(fit, np.setdiff1d(_reaching(fitter.table, fit, parents), parents)))
     half = dataclasses.replace(par, intensity=0.5 * par.intensity)
     found: tuple[np.ndarray, RayFit, RayFit] | None = None
     for sign in (-1.0, 1.0):
         start = dataclasses.replace(half, alpha=par.alpha + sign * shadow_probe)
+        # A cheap first look (the probes' grid); only where it finds light of its own, the full refits.
         partner = fitter.fit(start.sx_m, start.sy_m, start.alpha, subtract=others + fitter.render(half),
-                             alpha_half_range=probe_half_range)
-        host = fitter.fit(par.sx_m, par.sy_m, par.alpha, subtract=others + fitter.render(partner))
-        partner = fitter.fit(partner.sx_m, partner.sy_m, partner.alpha, subtract=others + fitter.render(host),
-                             alpha_half_range=probe_half_range)
-        good = ((partner.intensity >= 0.35 * host.intensity) & (partner.residual <= 0.2)
-                & (host.intensity <= 0.85 * par.intensity) & (host.residual <= 0.6 * par.residual)
-                & (np.abs(partner.alpha - host.alpha) > fitter.merge_alpha))
+                             alpha_half_range=probe_half_range, fine=(9, 0.25, 3, 3), wide_fine=WIDE_PROBE_GRID)
+        good = np.zeros(len(par), dtype=bool)
+        host = par
+        look = np.flatnonzero(partner.intensity >= 0.35 * half.intensity)
+        if look.size:
+            p0, h0 = take_fit(partner, look), take_fit(par, look)
+            h = fitter.fit(h0.sx_m, h0.sy_m, h0.alpha, subtract=others + fitter.render(p0))
+            q = fitter.fit(p0.sx_m, p0.sy_m, p0.alpha, subtract=others + fitter.render(h),
+                           alpha_half_range=probe_half_range)
+            good[look] = ((q.intensity >= 0.35 * h.intensity) & (q.residual <= 0.2)
+                          & (h.intensity <= 0.85 * h0.intensity) & (h.residual <= 0.6 * h0.residual)
+                          & (np.abs(q.alpha - h.alpha) > fitter.merge_alpha))
+            host, partner = _with_rows(par, look, h), _with_rows(partner, look, q)
         if found is None:
             found = (good, host, partner)
         else:
@@ -309,6 +321,23 @@ def split_shared(fitter: RayFitter, peaks: Peaks, fit: RayFit, *, shadow_probe: 
     kept = unique_indices(both, radius_px=fitter.merge_radius_px, alpha_tolerance=fitter.merge_alpha,
                           priority=np.r_[fit.intensity + 1e12, new.intensity])
     return both.take(kept), take_fit(concat_fits(fit, new), kept)
+
+
+def _reaching(table: LightFieldTable, fit: RayFit, rows: np.ndarray) -> np.ndarray:
+    """Fits whose blur disk (grown by two pitches) overlaps that of one of the fits ``rows``."""
+    pitch = float(np.hypot(*table.basis_m[:, 0]))
+    reach = np.abs(1.0 - 1.0 / fit.alpha) * table.aperture_radius_m + pitch
+    tree = cKDTree(np.column_stack([fit.sx_m, fit.sy_m]))
+    hits = tree.query_ball_point(np.column_stack([fit.sx_m[rows], fit.sy_m[rows]]), reach[rows] + reach.max())
+    return np.unique(np.concatenate([np.asarray(h, dtype=np.int64) for h in hits]))
+
+
+def _with_rows(fit: RayFit, rows: np.ndarray, new: RayFit) -> RayFit:
+    """A copy of ``fit`` with ``rows`` replaced by the rows of ``new``."""
+    out = RayFit(**{name: getattr(fit, name).copy() for name in RayFit.__dataclass_fields__})
+    for name in RayFit.__dataclass_fields__:
+        getattr(out, name)[rows] = getattr(new, name)
+    return out
 
 
 def _where(mask: np.ndarray, a: RayFit, b: RayFit) -> RayFit:
@@ -354,9 +383,7 @@ def _acceptable(fitter: RayFitter, fit: RayFit, max_residual: float) -> np.ndarr
 
 def replace_fits(grid: ImageGrid, peaks: Peaks, fit: RayFit, rows: np.ndarray, new: RayFit) -> tuple[Peaks, RayFit]:
     """``fit`` with ``rows`` replaced by the rows of ``new``, and the peaks moved to match."""
-    merged = RayFit(**{name: getattr(fit, name).copy() for name in fit.__dataclass_fields__})
-    for name in fit.__dataclass_fields__:
-        getattr(merged, name)[rows] = getattr(new, name)
+    merged = _with_rows(fit, rows, new)
     return _moved(grid, peaks, merged), merged
 
 

@@ -280,7 +280,7 @@ def test_a_fit_holding_two_particles_on_one_line_of_sight_is_split():
     model, table, s_hat, image = _line_of_sight_scene(truth, [1985.0, 1900.0])
     fitter, peaks, fit = _one_fit(model, table, s_hat, image, 1.0023)
     assert len(fit) == 1 and fit.intensity[0] > 0
-    split, split_fit = split_shared(fitter, peaks, fit, shadow_probe=0.0065, bright=0.5)
+    split, split_fit = split_shared(fitter, peaks, fit, shadow_probe=0.0065, bright=0.5, misfit=0.5)
     assert len(split) == 2
     assert np.allclose(np.sort(split_fit.alpha), truth, atol=4e-4)
     assert np.all(split_fit.residual < fit.residual)
@@ -291,5 +291,5 @@ def test_a_single_particle_is_not_split():
 
     model, table, s_hat, image = _line_of_sight_scene([1.0028], [2600.0])
     fitter, peaks, fit = _one_fit(model, table, s_hat, image, 1.0028)
-    split, _ = split_shared(fitter, peaks, fit, shadow_probe=0.0065, bright=0.5)
+    split, _ = split_shared(fitter, peaks, fit, shadow_probe=0.0065, bright=0.5, misfit=0.5)
     assert len(split) == 1
