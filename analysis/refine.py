@@ -133,7 +133,9 @@ WIDE_BLUR_PITCHES = 2.0
 #: with precision no lower. Fewer points per pixel (3 x 3) there lost a tenth of the precision,
 #: 0.1 pitch steps a particle or two of recall, fewer coarse depths (9-11) biased the depth scale.
 WIDE_FINE_GRID = (5, 0.15, 7, 5)
-#: The probes for hidden particles behind wide blurs: 5 depths over +-0.15 pitch, 3 x 3 points.
+#: The fine pass of probes for hidden particles: crowds probe many, so 3 positions per side and
+#: pixels as 3 x 3 points; behind wide blurs 5 depths over +-0.15 pitch.
+PROBE_GRID = (9, 0.25, 3, 3)
 WIDE_PROBE_GRID = (5, 0.15, 3, 3)
 
 
@@ -173,9 +175,9 @@ def refine_peaks(fitter: RayFitter, peaks: Peaks, *, shadow_probe: float = 0.0, 
                                                      refined.alpha[parents] + shadow_probe])
     parent_intensity = np.r_[fit.intensity[parents], fit.intensity[parents]]
     psx, psy = fitter.grid.to_lens_plane(probes.x, probes.y)
-    # Crowds probe many: the coarse pass's pixel centres only.
+    # Crowds probe many: a cheaper fine pass.
     pfit = fitter.fit(psx, psy, probes.alpha, alpha_half_range=probe_half_range, n_alpha=17, subtract=explained,
-                      fine=(9, 0.25, 3, 3), wide_fine=WIDE_PROBE_GRID)
+                      fine=PROBE_GRID, wide_fine=WIDE_PROBE_GRID)
     log.debug("shadow probes: %d of %d particles probed", parents.size, len(refined))
     # A probe must be a particle of its own: as bright as a good part of the one it hides behind
     # (what is left of a neighbour's imperfectly modelled light is a tenth of it or less).
@@ -272,10 +274,10 @@ def split_shared(fitter: RayFitter, peaks: Peaks, fit: RayFit, *, shadow_probe: 
     A particle hidden behind another can give its light to the other's fit: one fit, brighter
     than most, explains both, and no light is left over for a probe (:func:`refine_peaks`) to
     find. For each fit brighter than ``bright`` times the median that also misfits more than
-    ``misfit`` times the median, a partner is tried
-    ``shadow_probe`` in front and behind, starting from half the light each; partner and fit
-    are refitted with each other's light taken off. The split is kept where the fit gives up
-    light to the partner and then fits its pixels much better (misfit down by 40 %).
+    ``misfit`` times the median, a partner is tried ``shadow_probe`` in front and behind,
+    starting from half the light each; partner and fit are refitted with each other's light
+    taken off. The split is kept where the fit gives up light to the partner and then fits its
+    pixels much better (misfit down by 40 %).
     """
     # Two particles taken for one also misfit more than most.
     parents = (np.flatnonzero((fit.intensity > bright * np.median(fit.intensity))
@@ -291,7 +293,7 @@ def split_shared(fitter: RayFitter, peaks: Peaks, fit: RayFit, *, shadow_probe: 
         start = dataclasses.replace(half, alpha=par.alpha + sign * shadow_probe)
         # A cheap first look (the probes' grid); only where it finds light of its own, the full refits.
         partner = fitter.fit(start.sx_m, start.sy_m, start.alpha, subtract=others + fitter.render(half),
-                             alpha_half_range=probe_half_range, fine=(9, 0.25, 3, 3), wide_fine=WIDE_PROBE_GRID)
+                             alpha_half_range=probe_half_range, fine=PROBE_GRID, wide_fine=WIDE_PROBE_GRID)
         good = np.zeros(len(par), dtype=bool)
         host = par
         look = np.flatnonzero(partner.intensity >= 0.35 * half.intensity)
