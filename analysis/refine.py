@@ -214,7 +214,7 @@ def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit
     ok = _acceptable(fitter, new, fitter.max_residual)
     if not ok.all():
         # The dropped fits' light was taken off their neighbours' pixels too: refit those without it.
-        near = ok & _overlapping(fitter.table, fit, ~ok)
+        near = ok & _overlapping(fitter.table, fit, np.flatnonzero(~ok), pad_pitches=2.0)
         explained -= fitter.render(take_fit(fit, np.flatnonzero(~ok)))
         keep = np.flatnonzero(ok)
         peaks, fit, new, near = peaks.take(keep), take_fit(fit, keep), take_fit(new, keep), near[keep]
@@ -285,8 +285,12 @@ def split_shared(fitter: RayFitter, peaks: Peaks, fit: RayFit, *, shadow_probe: 
     if parents.size == 0:
         return peaks, fit
     par = take_fit(fit, parents)
-    # The light of the other fits that reach the parents' lenses (rendering all would cost more).
-    others = fitter.render(take_fit(fit, np.setdiff1d(_reaching(fitter.table, fit, parents), parents)))
+    # The light of the other fits that reach the parents' lenses (rendering all would cost more): a
+    # fit's light lands within its blur plus 1.6 pitches (cell and crosstalk), and a fit gathers
+    # lenses up to its blur plus about 2.5 pitches.
+    reach = _overlapping(fitter.table, fit, parents, pad_pitches=4.5)
+    reach[parents] = False
+    others = fitter.render(take_fit(fit, np.flatnonzero(reach)))
     half = dataclasses.replace(par, intensity=0.5 * par.intensity)
     found: tuple[np.ndarray, RayFit, RayFit] | None = None
     for sign in (-1.0, 1.0):
@@ -325,15 +329,6 @@ def split_shared(fitter: RayFitter, peaks: Peaks, fit: RayFit, *, shadow_probe: 
     return both.take(kept), take_fit(concat_fits(fit, new), kept)
 
 
-def _reaching(table: LightFieldTable, fit: RayFit, rows: np.ndarray) -> np.ndarray:
-    """Fits whose blur disk (grown by two pitches) overlaps that of one of the fits ``rows``."""
-    pitch = float(np.hypot(*table.basis_m[:, 0]))
-    reach = np.abs(1.0 - 1.0 / fit.alpha) * table.aperture_radius_m + pitch
-    tree = cKDTree(np.column_stack([fit.sx_m, fit.sy_m]))
-    hits = tree.query_ball_point(np.column_stack([fit.sx_m[rows], fit.sy_m[rows]]), reach[rows] + reach.max())
-    return np.unique(np.concatenate([np.asarray(h, dtype=np.int64) for h in hits]))
-
-
 def _with_rows(fit: RayFit, rows: np.ndarray, new: RayFit) -> RayFit:
     """A copy of ``fit`` with ``rows`` replaced by the rows of ``new``."""
     out = RayFit(**{name: getattr(fit, name).copy() for name in RayFit.__dataclass_fields__})
@@ -370,13 +365,22 @@ def accept(fitter: RayFitter, peaks: Peaks, fit: RayFit, max_residual: float) ->
     return _moved(fitter.grid, peaks, fit).take(keep), take_fit(fit, keep)
 
 
-def _overlapping(table: LightFieldTable, fit: RayFit, among: np.ndarray) -> np.ndarray:
-    """Fits whose light can share a micro-lens with that of one of the fits ``among`` (a mask)."""
+def _overlapping(table: LightFieldTable, fit: RayFit, rows: np.ndarray, *, pad_pitches: float) -> np.ndarray:
+    """Fits (a mask) whose blur disk, grown with that of one of the fits ``rows`` by ``pad_pitches``
+    in all, meets it: ``distance < blur + blur_row + pad`` (blur radii on the MLA)."""
     pitch = float(np.hypot(*table.basis_m[:, 0]))
-    blur = np.abs(1.0 - 1.0 / fit.alpha) * table.aperture_radius_m  # blur radius on the MLA
-    others = np.flatnonzero(among)
-    d = np.hypot(fit.sx_m[:, None] - fit.sx_m[others], fit.sy_m[:, None] - fit.sy_m[others])
-    return np.any(d < blur[:, None] + blur[others] + 2.0 * pitch, axis=1)
+    blur = np.abs(1.0 - 1.0 / fit.alpha) * table.aperture_radius_m
+    out = np.zeros(len(fit), dtype=bool)
+    if len(fit) == 0 or rows.size == 0:
+        return out
+    xy = np.column_stack([fit.sx_m, fit.sy_m])
+    # Candidates from a tree (a crowd of thousands would make a full distance matrix hundreds of MB).
+    hits = cKDTree(xy).query_ball_point(xy[rows], blur[rows] + blur.max() + pad_pitches * pitch)
+    for r, near in zip(rows, hits):
+        near = np.asarray(near, dtype=np.int64)
+        d = np.hypot(fit.sx_m[near] - fit.sx_m[r], fit.sy_m[near] - fit.sy_m[r])
+        out[near[d < blur[near] + blur[r] + pad_pitches * pitch]] = True
+    return out
 
 
 def _acceptable(fitter: RayFitter, fit: RayFit, max_residual: float) -> np.ndarray:
