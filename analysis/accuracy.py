@@ -16,6 +16,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
+from ._floor_kernels import lit_pattern, same_pattern_counts
 from .camera_model import Lattice
 
 #: Defocus bins (blur diameter in lens pitches) for the depth error breakdown.
@@ -73,13 +74,88 @@ def single_lens(truth: Mapping[str, np.ndarray], lattice: Lattice) -> np.ndarray
     return np.asarray(truth["blur_pitches"], float) / 2 * lattice.pitch_px <= inner
 
 
-def depth_floor(truth: Mapping[str, np.ndarray], lattice: Lattice, *, nn_mm: float) -> tuple[int, float]:
-    """How many particles light one lens only, and the depth RMS over NN they alone leave.
+def pixel_limited_alpha(truth: Mapping[str, np.ndarray], lattice: Lattice, *, tolerance: float = 0.01,
+                        max_blur_pitches: float = 1.5) -> np.ndarray:
+    """The best depth (alpha) that a particle's raw pixels alone allow, for each true particle.
 
-    Without knowledge beyond the exposure, the best estimate for such a particle is the middle of
-    the depths it allows, which is the focus (``alpha = 1``); the floor is the RMS, over all true
-    particles, of ``|Z(alpha = 1) - Z|`` for these and 0 for the rest. A pipeline that scores below
-    it has used more than the exposure: a prior (:mod:`analysis.depth_prior`).
+    In geometric optics (the simulator's), a particle's pixels are set by which lens the ray from
+    each aperture point reaches: its blur disk laid over the lens cells. Often other positions and
+    depths lay the same pattern. A disk inside one cell: every smaller or larger one that still fits,
+    in front of focus or behind. A disk over one edge, or one corner: the chord (corner) moves the
+    same way for a step in depth as for a step in position, so depth and position trade along a
+    line. Only two parallel edges or two corners in the disk (a blur over 0.6-1 pitch) pin both.
+
+    Knowing nothing else (position uniform, signed blur radius uniform within a pitch), the
+    estimate of least mean square error is the mean depth over all that lay the same pattern, to
+    within ``tolerance`` of the aperture. Particles blurred wider than ``max_blur_pitches`` are
+    taken as pinned (their own alpha).
+
+    Parameters
+    ----------
+    truth : mapping with ``x, y`` (the chief ray on the MLA in micro-image lattice pixels),
+        ``blur_pitches`` and ``alpha``, as the simulator's truth CSV has them.
+    lattice : Lattice
+
+    Returns
+    -------
+    ndarray of shape (N,), float64
+    """
+    x, y, blur, alpha = (np.asarray(truth[c], float) for c in ("x", "y", "blur_pitches", "alpha"))
+    c_true = 1.0 - 1.0 / alpha
+    best = alpha.copy()
+    todo = np.flatnonzero(blur < max_blur_pitches)
+    if todo.size == 0:
+        return best
+    # The blur diameter is proportional to |c| (D / lens pitch); the signed radius carries c's sign.
+    wide = blur > 0.05
+    c_per_blur = float(np.median(np.abs(c_true[wide]) / blur[wide])) if wide.any() else math.nan
+    fi, fj = lattice.fractional_index(x, y)
+    i, j = lattice.nearest(x, y)
+    # Offsets from the own lens on an ideal lattice of unit pitch (the real one is that, rotated).
+    ox, oy = (fi - i) + 0.5 * (fj - j), (fj - j) * math.sqrt(3.0) / 2
+    points = _aperture_points(_POINTS_PER_SIDE)
+    max_mismatch = int(tolerance * points.shape[0])
+    radii = np.linspace(-1.0, 1.0, 2 * _RADII_PER_PITCH + 1)
+    reference = np.empty(points.shape[0], dtype=np.int64)
+    counts = np.empty(radii.size)
+    for k in todo:
+        r_true = math.copysign(blur[k] / 2, c_true[k])
+        lit_pattern(points, ox[k], oy[k], r_true, reference)
+        same_pattern_counts(points, reference, ox[k], oy[k], radii, _POSITION_HALF_WIDTH, _POSITION_STEP,
+                            max_mismatch, counts)
+        if counts.sum() > 0 and math.isfinite(c_per_blur):  # else: pinned finer than the grid
+            best[k] = 1.0 / (1.0 - 2.0 * float(np.sum(radii * counts) / counts.sum()) * c_per_blur)
+    return best
+
+
+#: The depth floor's grids (:func:`pixel_limited_alpha`): aperture points per side of the unit
+#: disk's square, blur radii per pitch, and positions (pitches) around the particle.
+#: Against finer grids (24 points, 100 radii per pitch, 0.01 pitch) the floor of each of six ball
+#: exposures moves by under 0.3 % of NN, their pooled floor by 0.1 %; 20x faster (about 1 s each).
+_POINTS_PER_SIDE = 16
+_RADII_PER_PITCH = 50
+_POSITION_HALF_WIDTH = 0.6
+_POSITION_STEP = 0.02
+
+
+def _aperture_points(per_side: int) -> np.ndarray:
+    """Centres of a square grid's cells inside the unit disk, rim first (where patterns differ,
+    so a mismatch is found after few points)."""
+    g = (np.arange(per_side) + 0.5) * 2.0 / per_side - 1.0
+    u, v = (a.ravel() for a in np.meshgrid(g, g))
+    keep = u * u + v * v <= 1.0
+    u, v = u[keep], v[keep]
+    order = np.argsort(-(u * u + v * v), kind="stable")
+    return np.ascontiguousarray(np.column_stack([u[order], v[order]]))
+
+
+def depth_floor(truth: Mapping[str, np.ndarray], lattice: Lattice, *, nn_mm: float) -> tuple[int, float]:
+    """How many particles light one lens only, and the depth RMS over NN that no estimate from the
+    pixels alone can beat.
+
+    The floor is the RMS, over all true particles, of ``|Z(best alpha) - Z|`` with the best alpha
+    of :func:`pixel_limited_alpha`. A pipeline that scores below it has used more than the
+    exposure: a prior (:mod:`analysis.depth_prior`).
     """
     one = single_lens(truth, lattice)
     z = np.asarray(truth["Z"], float)
@@ -87,7 +163,7 @@ def depth_floor(truth: Mapping[str, np.ndarray], lattice: Lattice, *, nn_mm: flo
     if z.size < 2 or np.ptp(alpha) == 0:
         return int(one.sum()), math.nan
     slope = np.polyfit(alpha, z, 1)[0]  # mm per unit alpha, locally linear
-    err = np.where(one, (alpha - 1.0) * slope, 0.0)
+    err = (pixel_limited_alpha(truth, lattice) - alpha) * slope
     return int(one.sum()), float(np.sqrt(np.mean(err**2)) / nn_mm)
 
 

@@ -111,6 +111,11 @@ def pct(v: float) -> str:
     return "   -  " if v is None or not np.isfinite(v) else f"{100 * v:6.2f}"
 
 
+def pooled(rms: list[float], counts: list[int]) -> str:
+    """RMS over all particles of several cases, from each case's RMS and count, as :func:`pct`."""
+    return pct(float(np.sqrt(np.average(np.square(rms), weights=counts))))
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--size", type=int, default=3280)
@@ -152,9 +157,20 @@ def main() -> int:
         print(f"{r['scenario']:13s} {r['seed']:4d} {s.n_true:5d} {s.n_found:5d} {pct(s.recall)} {pct(s.precision)} "
               f"{pct(s.depth_fit_rms_over_nn)} {pct(s.depth_abs_rms_over_nn)} {pct(s.lateral_rms_over_nn)} "
               f"{pairs:>6s} {r['floor'][0]:6d} {pct(r['floor'][1])}")
+    print("\npooled over seeds (RMS of all particles):")
+    for scenario in args.scenarios:
+        mine = [r for r in rows if r["scenario"] == scenario]
+        if not mine:
+            continue
+        matched = [r["score"].n_matched for r in mine]
+        print(f"  {scenario:13s} depth {pooled([r['score'].depth_fit_rms_over_nn for r in mine], matched)}  "
+              f"|dZ| {pooled([r['score'].depth_abs_rms_over_nn for r in mine], matched)}  "
+              f"floor {pooled([r['floor'][1] for r in mine], [r['score'].n_true for r in mine])}")
     print("\n1-lens: true particles whose blur fits in one micro-lens (their pixels allow any depth up to that "
-          "blur,\nin front of focus or behind); floor: the |dZ| they alone leave when placed at the middle of "
-          "what\ntheir pixels allow (analysis.accuracy.depth_floor). Scoring below it takes a prior (depth_prior).")
+          "blur,\nin front of focus or behind). floor: the |dZ| of the best estimate from the pixels alone "
+          "(analysis.accuracy.depth_floor:\nthe mean over all positions and depths that light the same pattern; "
+          "blurs over an edge or a corner\nof a lens cell leave depth and position trading too). "
+          "Scoring below it takes a prior (depth_prior).")
     print("\ntargets:", "; ".join(f"{k}: " + ", ".join(f"{n} {'>=' if n in ('recall', 'precision') else '<='} "
                                                         f"{100 * v:g} %" for n, v in t.items() if v is not None)
                                   for k, t in TARGETS.items()))

@@ -1,10 +1,10 @@
-"""What the exposure can tell: particles whose blur fits in one micro-lens, and the floor they set."""
+"""What the exposure can tell: particles whose pixels leave the depth open, and the floor they set."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from analysis.accuracy import depth_floor, single_lens
+from analysis.accuracy import depth_floor, pixel_limited_alpha, single_lens
 from analysis.camera_model import CameraModel
 from analysis.scenarios import Particles
 from analysis.sim_camera import simulated_camera_metadata
@@ -58,14 +58,42 @@ def test_single_lens_follows_position_and_blur():
         assert bool(single_lens(truth, m.lattice)[0]) is expected, (offset, blur)
 
 
-def test_depth_floor_counts_only_single_lens_particles():
-    m = model()
-    ps = [particle_on_lens(m, blur_alpha(m, b, s), off) for b, s, off in
-          [(0.6, 1.0, (0, 0)), (0.6, -1.0, (0, 0)), (3.0, 1.0, (0, 0)), (0.2, 1.0, (4.5, 0))]]
+def truth_of(m: CameraModel, cases: list[tuple[float, float, tuple[float, float]]]) -> tuple[dict, Particles]:
+    """Truth columns of particles ``(blur_pitches, sign of the defocus, offset_px from the lens centre)``."""
+    ps = [particle_on_lens(m, blur_alpha(m, b, s), off) for b, s, off in cases]
     p = Particles(*(np.concatenate([getattr(q, f) for q in ps]) for f in ("x_mm", "y_mm", "z_mm", "brightness_dn")))
     t = particle_truth(m, p)
-    truth = {"x": t.x_px, "y": t.y_px, "blur_pitches": t.blur_pitches, "alpha": t.alpha, "Z": p.z_mm}
+    return {"x": t.x_px, "y": t.y_px, "blur_pitches": t.blur_pitches, "alpha": t.alpha, "Z": p.z_mm}, p
+
+
+def test_pixels_pin_the_depth_only_where_the_blur_spans_a_cell():
+    m = model()
+    truth, _ = truth_of(m, [(0.6, 1.0, (0, 0)), (0.6, -1.0, (0, 0)),     # inside one cell
+                            (1.3, 1.0, (0, 0)), (1.3, -1.0, (0, 0)),     # over all six corners
+                            (0.2, 1.0, (4.5, 0)), (0.2, -1.0, (4.5, 0))])  # over one edge
+    c_true = 1 - 1 / truth["alpha"]
+    c_best = 1 - 1 / pixel_limited_alpha(truth, m.lattice)
+    # Inside one cell: both signs and every size alike, so the middle (focus).
+    assert np.all(np.abs(c_best[:2]) < 0.05 * np.abs(c_true[:2]))
+    # Six corners in the disk: pinned (to the radius grid's step).
+    assert np.allclose(c_best[2:4], c_true[2:4], rtol=0.03)
+    # One edge: the side of focus is known (the chord's side), but a particle nearer the edge and
+    # sharper lays the same chord, and so does one farther in and more blurred, up to where the
+    # disk meets the next edges: the best estimate lies well beyond this particle's own blur.
+    assert np.all(np.sign(c_best[4:]) == np.sign(c_true[4:]))
+    assert np.all(np.abs(c_best[4:]) > 1.5 * np.abs(c_true[4:]))
+
+
+def test_depth_floor_is_the_error_of_the_best_estimate():
+    m = model()
+    truth, p = truth_of(m, [(0.6, 1.0, (0, 0)), (0.6, -1.0, (0, 0)), (3.0, 1.0, (0, 0)), (0.2, 1.0, (4.5, 0))])
     count, floor = depth_floor(truth, m.lattice, nn_mm=1.0)
-    assert count == 2
-    dz = (t.alpha[:2] - 1.0) * np.polyfit(t.alpha, p.z_mm, 1)[0]
-    assert np.isclose(floor, np.sqrt(np.sum(dz**2) / 4))
+    assert count == 2  # the edge-crossing one lights two lenses
+    slope = np.polyfit(truth["alpha"], p.z_mm, 1)[0]
+    err = (pixel_limited_alpha(truth, m.lattice) - truth["alpha"]) * slope
+    assert err[2] == 0.0  # wide blurs are pinned
+    assert np.isclose(floor, np.sqrt(np.mean(err**2)))
+    # The edge-crossing one adds its own share to the one-lens particles' (placed at focus).
+    assert abs(err[3]) > 0.5 * abs(truth["alpha"][3] - 1.0) * slope
+    one_lens = (truth["alpha"][:2] - 1.0) * slope
+    assert floor > np.sqrt(np.sum(one_lens**2) / 4)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.accuracy import score
+from analysis.accuracy import depth_floor, score
 from analysis.errors import ParameterError
 from analysis.maxima import find_maxima
 from analysis.moments import detect
@@ -31,8 +31,11 @@ def test_crowded_ball_found(ball):
     # Connected components alone merge neighbours' blobs and find about 40 % of this crop.
     assert s.recall >= 0.9 and s.precision >= 0.93
     assert s.lateral_rms_over_nn < 0.03
-    # The ball spans several NN in depth: depths from the slice maxima alone would be far worse.
-    assert s.depth_fit_rms_over_nn < 0.2
+    # Near focus the pixels leave depths open (analysis.accuracy.depth_floor): the fit comes within
+    # 30 % of the best that any estimate from them can do.
+    floor = depth_floor(truth, exposure.model.lattice, nn_mm=nn)[1]
+    assert 0.03 < floor < 0.15
+    assert s.depth_abs_rms_over_nn < 1.3 * floor
 
 
 def test_components_alone_merge_neighbours(ball):
