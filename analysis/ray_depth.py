@@ -27,6 +27,7 @@ import numba
 import numpy as np
 from numba import prange
 from scipy.spatial import cKDTree
+from scipy.special import ndtr
 
 from .lightfield import LightFieldTable
 
@@ -190,14 +191,25 @@ def aperture_per_lens_plane(optics: Any) -> float:
 
 
 def _pixel_footprint(n_side: int, blur_px: float) -> np.ndarray:
-    """Points (pixels) standing for one pixel's area blurred by a Gaussian: an even ``n_side`` x
-    ``n_side`` grid, centred, spaced so its variance per axis is the pixel's (1/12) plus the
-    blur's (a symmetric footprint: a lopsided one shifts every fitted position)."""
+    """Points (pixels) standing for one pixel's area blurred by a Gaussian: an ``n_side`` x
+    ``n_side`` grid at the quantiles ``(k + 1/2) / n_side`` of that spread along each axis, so
+    that each point stands for an equal share of the light (symmetric: a lopsided footprint shifts
+    every fitted position). Points spaced evenly with the spread's variance, as before, misjudge
+    how the few pixels of a strongly blurred particle's small lit patches are lit: on isolated
+    simulated particles its depth came out 1.1 % too far from focus, with these 0.1 %."""
     if n_side <= 1:
         return np.zeros((1, 2))  # the pixel centre alone
-    step = np.sqrt(12.0 * (1.0 / 12.0 + blur_px**2) / (n_side**2 - 1))
-    g = (np.arange(n_side) - 0.5 * (n_side - 1)) * step
-    gx, gy = np.meshgrid(g, g)
+    x = np.linspace(-0.5 - 5.0 * blur_px, 0.5 + 5.0 * blur_px, 2001)
+    if blur_px > 0:
+        # Cumulative distribution of a unit box convolved with a Gaussian of sd blur_px.
+        def g(y: np.ndarray) -> np.ndarray:
+            return y * ndtr(y / blur_px) + blur_px * np.exp(-0.5 * (y / blur_px) ** 2) / np.sqrt(2.0 * np.pi)
+        cdf = g(x + 0.5) - g(x - 0.5)
+    else:
+        cdf = np.clip(x + 0.5, 0.0, 1.0)
+    g1 = np.interp((np.arange(n_side) + 0.5) / n_side, cdf, x)
+    g1 = 0.5 * (g1 - g1[::-1])  # exactly symmetric
+    gx, gy = np.meshgrid(g1, g1)
     return np.column_stack([gx.ravel(), gy.ravel()])
 
 
