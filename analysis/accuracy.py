@@ -81,9 +81,10 @@ def pixel_limited_alpha(truth: Mapping[str, np.ndarray], lattice: Lattice, *, to
     In geometric optics (the simulator's), a particle's pixels are set by which lens the ray from
     each aperture point reaches: its blur disk laid over the lens cells. Often other positions and
     depths lay the same pattern. A disk inside one cell: every smaller or larger one that still fits,
-    in front of focus or behind. A disk over one edge, or one corner: the chord (corner) moves the
-    same way for a step in depth as for a step in position, so depth and position trade along a
-    line. Only two parallel edges or two corners in the disk (a blur over 0.6-1 pitch) pin both.
+    in front of focus or behind. A disk over one edge, two edges that are not parallel, or one
+    corner: chords and corner move alike for a step in depth and a step in position, so depth and
+    position trade along a line. Only two parallel edges (a blur over a pitch) or two corners (over
+    0.58 pitch) in the disk pin both.
 
     Knowing nothing else (position uniform, signed blur radius uniform within a pitch), the
     estimate of least mean square error is the mean depth over all that lay the same pattern, to
