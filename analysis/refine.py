@@ -131,9 +131,10 @@ FINE_TEMPERATURE = 0.25
 WIDE_BLUR_PITCHES = 2.0
 #: Their light spreads over dozens of lenses, which pin position and depth down well enough for
 #: the coarse pass that the fine pass may search +-0.15 pitch (same 0.05 pitch steps, 5 x 5 points)
-#: and 5 depths: 55 % of the cost, and on the off-focus ball (3 seeds) depth error 5.75 -> 5.38 %
-#: with precision no lower. Fewer points per pixel (3 x 3) there lost a tenth of the precision,
-#: 0.1 pitch steps a particle or two of recall, fewer coarse depths (9-11) biased the depth scale.
+#: and 5 depths: 55 % of the cost, and on the off-focus ball (3 seeds; pixel points then evenly
+#: spaced) depth error 5.75 -> 5.38 % with precision no lower. Fewer points per pixel (3 x 3) there
+#: lost a tenth of the precision, 0.1 pitch steps a particle or two of recall, fewer coarse depths
+#: (9-11) biased the depth scale.
 WIDE_FINE_GRID = (5, 0.15, 7, 5)
 #: The fine pass of probes for hidden particles: crowds probe many, so 3 positions per side and
 #: pixels as 3 x 3 points; behind wide blurs 5 depths over +-0.15 pitch.
