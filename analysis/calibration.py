@@ -12,6 +12,7 @@ import json
 import logging
 import math
 import re
+import struct
 import zipfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -264,7 +265,8 @@ def read_calibration(path: Path, *, white_sha1: str | None = None) -> Calibratio
     try:
         with np.load(path, allow_pickle=False) as npz:
             header: dict[str, Any] = json.loads(str(npz["header"]))
-            devignetting = npz["devignetting"]
+            mapped = _mapped_member(path, "devignetting")
+            devignetting = npz["devignetting"] if mapped is None else mapped
         if header.get("version") != CACHE_VERSION:
             raise CalibrationError(f"{path} has cache version {header.get('version')}, not {CACHE_VERSION}; "
                                    "delete it, or let load_calibration rebuild it")
@@ -288,6 +290,35 @@ def read_calibration(path: Path, *, white_sha1: str | None = None) -> Calibratio
     except (OSError, EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile) as exc:
         raise CalibrationError(f"calibration file {path} is unreadable ({type(exc).__name__}: {exc}); "
                                "delete it, or let load_calibration rebuild it") from None
+
+
+def _mapped_member(path: Path, name: str) -> np.ndarray | None:
+    """A read-only memory map of the ``.npy`` member ``name`` of an ``.npz`` file that stores it
+    uncompressed (as :func:`save_calibration` writes it), else None.
+
+    The devignetting map (43 MB for an F01) only builds look-up tables; mapped, a worker whose
+    tables come from their own cache never reads it into memory.
+    """
+    with zipfile.ZipFile(path) as zf:
+        info = zf.getinfo(name + ".npy")
+    if info.compress_type != zipfile.ZIP_STORED:
+        return None
+    with open(path, "rb") as fh:
+        fh.seek(info.header_offset)
+        local = fh.read(30)  # the zip local file header: its name and extra field lengths at 26
+        if len(local) < 30 or local[:4] != b"PK\x03\x04":
+            return None
+        name_len, extra_len = struct.unpack("<HH", local[26:30])
+        fh.seek(info.header_offset + 30 + name_len + extra_len)
+        version = np.lib.format.read_magic(fh)
+        read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                       else np.lib.format.read_array_header_2_0)
+        shape, fortran, dtype = read_header(fh)
+        offset = fh.tell()
+    if dtype.hasobject or offset + dtype.itemsize * math.prod(shape) > path.stat().st_size:
+        return None
+    return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape,
+                     order="F" if fortran else "C").view(np.ndarray)
 
 
 def load_calibration(source: Path, metadata: dict, *, serial: str | None = None,

@@ -233,6 +233,8 @@ def test_cache_hit_skips_the_fit(white_folder, tmp_path):
     assert second.model == first.model
     assert second.devignetting.dtype == np.float32
     np.testing.assert_array_equal(second.devignetting, first.devignetting)
+    # Mapped from the cache file, not read: only building a look-up table touches it.
+    assert isinstance(second.devignetting.base, np.memmap) and not second.devignetting.flags.writeable
     assert (second.white_sha1, second.white_name, second.fit_n_lenses) == \
         (first.white_sha1, first.white_name, first.fit_n_lenses)
     assert not any(p.name.endswith(".tmp") for p in path.parent.iterdir())
@@ -258,6 +260,19 @@ def test_corrupt_cache_is_rebuilt(white_folder, tmp_path, caplog, damage):
     assert again.lattice == first.lattice
     assert "unusable" in caplog.text
     assert read_calibration(path, white_sha1=first.white_sha1).from_cache
+
+
+def test_compressed_cache_is_read_whole(white_folder, tmp_path):
+    """A cache file written compressed (by another tool) cannot be mapped: it is read instead."""
+    meta = simulated_camera_metadata(size=SIZE)
+    first = load_calibration(white_folder, meta, serial=SERIAL, cache_dir=tmp_path / "cache")
+    path = cache_path(tmp_path / "cache", SERIAL, first.white_sha1)
+    with np.load(path) as npz:
+        members = {k: npz[k] for k in npz.files}
+    np.savez_compressed(path, **members)
+    again = read_calibration(path, white_sha1=first.white_sha1)
+    assert not isinstance(again.devignetting.base, np.memmap)
+    np.testing.assert_array_equal(again.devignetting, first.devignetting)
 
 
 def test_read_calibration_names_the_problem(tmp_path):
