@@ -235,7 +235,8 @@ def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit
 SCREEN_GRID = (5, 0.15, 3, 3)
 #: With 3 x 3 points a good fit's misfit runs a little above the fine pass's, so the screen drops a
 #: fit only beyond this multiple of the misfit limit (on the off-focus ball, 1.0 also dropped two
-#: fits the full refit keeps; 1.5 none, and it finds 36-41 of the 38-42 the full refit drops).
+#: fits the full refit keeps; 1.5 none, and it finds 36-41 of the 38-42 the full refit drops;
+#: both measured with evenly spaced pixel points).
 SCREEN_RESIDUAL = 1.5
 
 
