@@ -111,3 +111,26 @@ def test_bad_inputs_give_clear_errors(sim, tmp_path, capsys):
     assert "error" in summary["exposures"][0] and summary["exposures"][1]["particles"] > 0
     code, _, err = run_json(capsys, ["validate-plane", str(tmp_path / "missing.csv")])
     assert code == 2
+
+
+def test_score_against_the_simulated_truth(sim, tmp_path, capsys):
+    out = tmp_path / "p.csv"
+    assert main(["process", str(sim / "IMG_0001.lfp"), "--calibration", str(sim / "calibration"), "--out", str(out),
+                 "--no-cache"]) == 0
+    capsys.readouterr()
+    truth = sim / "IMG_0001.truth.csv"
+    code, report, _ = run_json(capsys, ["score", str(out), "--truth", str(truth)])
+    assert code == 0
+    expected = score(read_csv(out), read_csv(truth))
+    assert report["n_matched"] == expected.n_matched and report["recall"] == expected.recall
+    assert math.isclose(report["depth_fit_rms_over_nn"], expected.depth_fit_rms_over_nn, rel_tol=1e-12)
+    assert report["recall"] >= 0.98 and report["depth_fit_rms_over_nn"] < 0.035  # the layer's targets
+    # The exposure lies beside the truth: the floor comes along (the layer crosses the focus).
+    assert report["depth_floor"]["single_lens"] >= 1 and report["depth_floor"]["rms_over_nn"] > 0
+    # Without it, no floor; and a file that is no truth is refused by name.
+    alone = tmp_path / "IMG_0001.truth.csv"
+    alone.write_bytes(truth.read_bytes())
+    code, report, _ = run_json(capsys, ["score", str(out), "--truth", str(alone)])
+    assert code == 0 and "depth_floor" not in report
+    code, _, err = run_json(capsys, ["score", str(out), "--truth", str(out)])
+    assert code == 2 and "blur_pitches" in err

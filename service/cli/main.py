@@ -16,6 +16,7 @@ COMMAND_MODULES: list[str] = [
     "simulate",
     "process_cmd",
     "validate_plane_cmd",
+    "score_cmd",
     "inspect_cmd",
     "camera",
     "serve",
