@@ -8,7 +8,7 @@ is fitted to its nearest neighbours (lateral distance), each weighted by how wel
 is known; the prior is that plane's prediction, as wide as the neighbours' scatter about it.
 
 Where the neighbours do not form a surface (a 3D crowd, several layers, a chain along the line
-of sight), they scatter widely about any plane, the prior is wide, and the pixels decide alone.
+of sight), too few of them agree on any plane: there is no prior, and the pixels decide alone.
 """
 
 from __future__ import annotations

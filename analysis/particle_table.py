@@ -119,3 +119,27 @@ def read_hdf5_columns(path: str | Path) -> dict[str, np.ndarray]:
     with h5py.File(path, "r") as f:
         data = f["entry/data"]
         return {name: data[name][()] for name in json.loads(data.attrs["columns"])}
+
+
+def read_table(path: str | Path, *, frame: int | None = None,
+               required: Iterable[str] = ("X", "Y", "Z")) -> dict[str, np.ndarray]:
+    """A particle table from ``.csv`` (:func:`read_csv`) or HDF5 (:func:`read_hdf5_columns`),
+    optionally only the rows of one ``frame`` of a batch.
+
+    Raises
+    ------
+    ParameterError
+        If a ``required`` column is missing, or ``frame`` is asked of a single-exposure table.
+    """
+    path = Path(path)
+    columns = read_csv(path) if path.suffix.lower() == ".csv" else read_hdf5_columns(path)
+    missing = [c for c in required if c not in columns]
+    if missing:
+        raise ParameterError(f"{path} has no column(s) {missing}")
+    if frame is not None:
+        if "frame" not in columns:
+            raise ParameterError(f"{path} holds one exposure; leave out the frame")
+        keep = columns["frame"] == frame
+        columns = {k: np.asarray(v)[keep] for k, v in columns.items()}
+    return columns
+

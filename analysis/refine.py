@@ -97,9 +97,7 @@ class RayFitter:
                 fits.append(fit_rays(self.image, self.table, sx[chunk], sy[chunk], a[chunk], **part))
         if len(fits) <= 1:
             return fits[0] if fits else fit_rays(self.image, self.table, sx, sy, a, **settings)
-        joined = RayFit(**{name: np.concatenate([getattr(f, name) for f in fits])
-                           for name in RayFit.__dataclass_fields__})
-        return take_fit(joined, np.argsort(np.concatenate(parts)))
+        return take_fit(concat_fits(*fits), np.argsort(np.concatenate(parts)))
 
     def render(self, fit: RayFit) -> np.ndarray:
         """The light of fitted particles on each table sample (:func:`analysis.ray_depth.render_fits`)."""
@@ -423,8 +421,8 @@ def concat_peaks(a: Peaks, b: Peaks) -> Peaks:
     return Peaks(**{name: np.concatenate([getattr(a, name), getattr(b, name)]) for name in a.__dataclass_fields__})
 
 
-def concat_fits(a: RayFit, b: RayFit) -> RayFit:
-    return RayFit(**{name: np.concatenate([getattr(a, name), getattr(b, name)]) for name in a.__dataclass_fields__})
+def concat_fits(*fits: RayFit) -> RayFit:
+    return RayFit(**{name: np.concatenate([getattr(f, name) for f in fits]) for name in RayFit.__dataclass_fields__})
 
 
 def take_fit(fit: RayFit, index: np.ndarray) -> RayFit:

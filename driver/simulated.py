@@ -274,7 +274,6 @@ class SimulatedCamera:
         self._not_ready = 0
         self.commands: list[bytes] = []  # every CDB served, for tests
 
-
     @classmethod
     def of(cls, folder: CameraFolder | str | os.PathLike | None, camera: SimulatedCamera | None,
            **settings) -> SimulatedCamera:
@@ -284,6 +283,7 @@ class SimulatedCamera:
         if folder is None:
             raise ValueError("give the simulated camera a folder or a SimulatedCamera")
         return cls(folder, **settings)
+
     def reboot(self, *, not_ready: int | None = None) -> None:
         """Forget the loaded content and be "not ready" for a while, as after a crash.
 

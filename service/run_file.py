@@ -39,7 +39,8 @@ import json
 import logging
 import os
 import shutil
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -181,12 +182,8 @@ def read_run_table(path: Path) -> dict[str, np.ndarray]:
     RunFileBusy
         If another process has it open for writing.
     """
-    with _open(path, "r") as f:
-        try:
-            _bookkeeping(f)
-            return read_table(f["entry/data"])
-        except _DAMAGE as exc:
-            raise RunFileDamaged(f"{type(exc).__name__}: {exc}") from exc
+    with _checked(path) as f:
+        return read_table(f["entry/data"])
 
 
 def read_run(path: Path) -> RunContents:
@@ -199,14 +196,20 @@ def read_run(path: Path) -> RunContents:
     RunFileBusy
         If another process has it open for writing.
     """
+    with _checked(path) as f:
+        return RunContents(read_table(f["entry/data"]), _read_exposures(f["entry/exposures"], 0))
+
+
+@contextmanager
+def _checked(path: Path) -> Iterator[h5py.File]:
+    """A run file opened read-only once its bookkeeping agrees; what reading it raises on damage
+    becomes RunFileDamaged."""
     with _open(path, "r") as f:
         try:
             _bookkeeping(f)
-            table = read_table(f["entry/data"])
-            exposures = _read_exposures(f["entry/exposures"], 0)
+            yield f
         except _DAMAGE as exc:
             raise RunFileDamaged(f"{type(exc).__name__}: {exc}") from exc
-    return RunContents(table, exposures)
 
 
 def copy_run_file(path: Path, dest: Path) -> None:

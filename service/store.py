@@ -40,8 +40,6 @@ from service.database import Database
 from service.nexus import nx_group, read_table, write_process, write_table
 from service.results import JobOutput
 
-__all__ = ["ExposureRecord", "Store", "nx_group", "read_table", "write_table"]
-
 log = logging.getLogger(__name__)
 
 
@@ -246,35 +244,38 @@ class Store:
                                       output.parameters if output is not None else {},
                                       lambda: self.run_from_results(record.run))
 
-    def read_run_columns(self, run: str) -> dict[str, np.ndarray] | None:
-        """All particles of a run with a ``frame`` column, or None for an unknown run."""
+    @contextmanager
+    def _repaired_run(self, run: str) -> Iterator[Path | None]:
+        """Hold a run file, repaired first if a crash left it half-written or damaged; yields its
+        path, or None if the run has no file."""
         path = self.run_path(run)
         if not path.exists() and not run_file.marker_path(path).exists():
-            return None
+            yield None
+            return
         with self._run_guard(run):
             run_file.repair(path, run, lambda: self.run_from_results(run))
-            return run_file.read_run_table(path) if path.exists() else None
+            yield path if path.exists() else None
+
+    def read_run_columns(self, run: str) -> dict[str, np.ndarray] | None:
+        """All particles of a run with a ``frame`` column, or None for an unknown run."""
+        with self._repaired_run(run) as path:
+            return None if path is None else run_file.read_run_table(path)
 
     def run_file_snapshot(self, run: str) -> Path | None:
         """A private copy of the run file for serving (appends change the file in place), or
         None if the run has none yet. The caller deletes it."""
-        path = self.run_path(run)
-        if not path.exists() and not run_file.marker_path(path).exists():
-            return None
-        fd, name = tempfile.mkstemp(prefix=f".{run}.", suffix=".nxs", dir=self.cache_dir)
-        os.close(fd)
-        copy = Path(name)
-        try:
-            with self._run_guard(run):
-                run_file.repair(path, run, lambda: self.run_from_results(run))
-                if not path.exists():
-                    copy.unlink()
-                    return None
+        with self._repaired_run(run) as path:
+            if path is None:
+                return None
+            fd, name = tempfile.mkstemp(prefix=f".{run}.", suffix=".nxs", dir=self.cache_dir)
+            os.close(fd)
+            copy = Path(name)
+            try:
                 run_file.copy_run_file(path, copy)
-        except BaseException:
-            copy.unlink(missing_ok=True)
-            raise
-        return copy
+            except BaseException:
+                copy.unlink(missing_ok=True)
+                raise
+            return copy
 
     def run_from_results(self, run: str) -> run_file.RunContents:
         """A run as its indexed result files record it: what a damaged run file is rebuilt from."""

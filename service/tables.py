@@ -13,7 +13,7 @@ from fastapi import Request
 from fastapi.responses import JSONResponse, Response
 
 from service.problems import Problem
-from service.store import nx_group, write_table
+from service.nexus import nx_group, write_table
 
 TableFormat = Literal["json", "csv", "h5"]
 MEDIA_TYPES = {"json": "application/json", "csv": "text/csv; charset=utf-8", "h5": "application/x-hdf5"}

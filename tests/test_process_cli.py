@@ -61,6 +61,9 @@ def test_batch_folder_to_one_table_with_frames_and_stack(sim, tmp_path, capsys):
     assert [n.rsplit("/", 1)[1] for n in names] == ["IMG_0001.lfp", "IMG_0002.lfp"]  # .RAW twins skipped
     table = read_csv(out)
     assert set(np.unique(table["frame"])) == {0, 1}
+    # One frame of the batch, scored against its own truth.
+    code, report, _ = run_json(capsys, ["score", str(out), "--frame", "1", "--truth", str(sim / "IMG_0002.truth.csv")])
+    assert code == 0 and report["n_found"] == int(np.sum(table["frame"] == 1)) and report["recall"] >= 0.98
     with h5py.File(tmp_path / "run.stack.h5") as f:
         assert f["entry/frames/1/stack"].shape[0] == 30
         assert f["entry/process"].attrs["n_slices"] == 30

@@ -16,8 +16,6 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from analysis.errors import AnalysisError
 
 
@@ -46,22 +44,11 @@ def run(args: argparse.Namespace) -> int:
     from analysis.accuracy import depth_floor, score
     from analysis.camera_model import CameraModel
     from analysis.exposure import read_exposure
-    from analysis.particle_table import read_csv, read_hdf5_columns
+    from analysis.particle_table import read_table
 
     try:
-        found = read_csv(args.table) if args.table.suffix.lower() == ".csv" else read_hdf5_columns(args.table)
-        truth = read_csv(args.truth)
-        for name, columns, needed in ((args.table, found, ("X", "Y", "Z")),
-                                      (args.truth, truth, ("X", "Y", "Z", "alpha", "x", "y", "blur_pitches"))):
-            missing = [c for c in needed if c not in columns]
-            if missing:
-                raise AnalysisError(f"{name} has no column(s) {missing}; give a table from plenodust process "
-                                    "and the truth CSV from plenodust simulate")
-        if args.frame is not None:
-            if "frame" not in found:
-                raise AnalysisError(f"{args.table} holds one exposure; leave out --frame")
-            keep = found["frame"] == args.frame
-            found = {k: np.asarray(v)[keep] for k, v in found.items()}
+        found = read_table(args.table, frame=args.frame)
+        truth = read_table(args.truth, required=("X", "Y", "Z", "alpha", "x", "y", "blur_pitches"))
         report = score(found, truth).to_dict()
         exposure_path = args.exposure or _exposure_beside(args.truth)
         if exposure_path is not None:

@@ -13,8 +13,6 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from analysis.errors import AnalysisError
 
 
@@ -28,20 +26,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from analysis.coordinates import validate_plane
-    from analysis.particle_table import read_csv, read_hdf5_columns
+    from analysis.particle_table import read_table
 
     try:
-        columns = (read_csv(args.table) if args.table.suffix.lower() == ".csv"
-                   else read_hdf5_columns(args.table))
-        missing = [c for c in ("X", "Y", "Z") if c not in columns]
-        if missing:
-            raise AnalysisError(f"{args.table} has no column(s) {missing}; give a table from plenodust process")
-        keep = np.ones(columns["X"].size, dtype=bool)
-        if args.frame is not None:
-            if "frame" not in columns:
-                raise AnalysisError(f"{args.table} holds one exposure; leave out --frame")
-            keep = columns["frame"] == args.frame
-        report = validate_plane(columns["X"][keep], columns["Y"][keep], columns["Z"][keep])
+        columns = read_table(args.table, frame=args.frame)
+        report = validate_plane(columns["X"], columns["Y"], columns["Z"])
     except (AnalysisError, OSError, KeyError, ValueError) as exc:
         print(f"plenodust validate-plane: {args.table}: {exc}", file=sys.stderr)
         return 2
