@@ -22,12 +22,13 @@ os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".cache" / "numba"))
 
 import numpy as np  # noqa: E402
 
-from analysis.camera_model import CameraModel  # noqa: E402
-from analysis.lightfield import build_table_from_model  # noqa: E402
-from analysis.refocus import default_alphas, products, refocus_stack, select_samples, subaperture_image  # noqa: E402
-from analysis.scenarios import Particles  # noqa: E402
-from analysis.sim_camera import simulated_camera_metadata  # noqa: E402
-from analysis.simulate import particle_truth, render_exposure, render_white_image  # noqa: E402
+from analysis.camera.model import CameraModel  # noqa: E402
+from analysis.lightfield.table import build_table_from_model  # noqa: E402
+from analysis.lightfield.refocus import (default_alphas, products, refocus_stack, select_samples,
+    subaperture_image)  # noqa: E402
+from analysis.simulation.scenarios import Particles  # noqa: E402
+from analysis.simulation.camera import simulated_camera_metadata  # noqa: E402
+from analysis.simulation.render import particle_truth, render_exposure, render_white_image  # noqa: E402
 
 
 def particles_on_grid(model: CameraModel, rng: np.random.Generator, spacing_px: float) -> Particles:

@@ -29,12 +29,12 @@ sys.path.insert(0, str(ROOT))
 from _common import best_time, peak_rss_mb  # noqa: E402
 os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".cache" / "numba"))
 
-from analysis.calibration import calibrate, load_calibration, read_calibration, cache_path  # noqa: E402
-from analysis.camera_model import CameraModel, Lattice  # noqa: E402
-from analysis.lattice_fit import fit_lattice  # noqa: E402
-from analysis.sim_camera import simulated_camera_metadata, simulated_private_metadata  # noqa: E402
-from analysis.simulate import render_white_image  # noqa: E402
-from analysis.whites import WhiteImage, load_white_images, write_white_pair  # noqa: E402
+from analysis.calibration.calibrate import calibrate, load_calibration, read_calibration, cache_path  # noqa: E402
+from analysis.camera.model import CameraModel, Lattice  # noqa: E402
+from analysis.calibration.lattice_fit import fit_lattice  # noqa: E402
+from analysis.simulation.camera import simulated_camera_metadata, simulated_private_metadata  # noqa: E402
+from analysis.simulation.render import render_white_image  # noqa: E402
+from analysis.formats.whites import WhiteImage, load_white_images, write_white_pair  # noqa: E402
 
 SIZE = 3280
 SERIAL = "A202160042"
@@ -66,7 +66,7 @@ def centre_error(fitted: Lattice, truth: Lattice) -> float:
 def measure(folder: Path, truth: Lattice) -> None:
     import numba
 
-    from analysis.lattice_fit import _demodulate, balance_channels, lens_centroids
+    from analysis.calibration.lattice_fit import _demodulate, balance_channels, lens_centroids
 
     rss_imports = peak_rss_mb()
     meta = simulated_camera_metadata(size=SIZE)

@@ -23,11 +23,11 @@ sys.path.insert(0, str(ROOT))
 
 from _common import best_time  # noqa: E402
 
-from analysis.exposure import (  # noqa: E402
-    Exposure, exposure_from_lfp_bytes, lfp_bytes, read_exposure, write_lfp, write_raw_pair)
-from analysis.file_report import inspect_file  # noqa: E402
-from analysis.lfp import read_container  # noqa: E402
-from analysis.raw12 import pack12, unpack12  # noqa: E402
+from analysis.formats.exposure import (Exposure, exposure_from_lfp_bytes, lfp_bytes, read_exposure,
+    write_lfp, write_raw_pair)
+from analysis.formats.file_report import inspect_file  # noqa: E402
+from analysis.formats.lfp import read_container  # noqa: E402
+from analysis.formats.raw12 import pack12, unpack12  # noqa: E402
 
 
 

@@ -35,11 +35,11 @@ os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".cache" / "numba"))
 
 import numpy as np  # noqa: E402
 
-from analysis.accuracy import BLUR_BINS, Score, depth_floor, score  # noqa: E402
-from analysis.calibration import load_calibration  # noqa: E402
-from analysis.exposure import read_exposure  # noqa: E402
-from analysis.particle_table import read_csv  # noqa: E402
-from analysis.pipeline import PipelineParams, process, warm_up  # noqa: E402
+from analysis.simulation.scoring import BLUR_BINS, Score, depth_floor, score  # noqa: E402
+from analysis.calibration.calibrate import load_calibration  # noqa: E402
+from analysis.formats.exposure import read_exposure  # noqa: E402
+from analysis.formats.particle_table import read_csv  # noqa: E402
+from analysis.pipeline.process import PipelineParams, process, warm_up  # noqa: E402
 
 TARGETS = {
     "tilted-layer": dict(recall=0.98, precision=0.95, depth_fit=0.035, depth_abs=0.05, lateral=0.015),
@@ -178,7 +178,7 @@ def main() -> int:
               f"floor {pooled([r['floor'][1] for r in mine], [r['score'].n_true for r in mine])}")
     print("\n1-lens: true particles whose blur fits in one micro-lens (their pixels allow any depth up to that "
           "blur,\nin front of focus or behind). floor: the |dZ| of the best estimate from the pixels alone "
-          "(analysis.accuracy.depth_floor:\nthe mean over all positions and depths that light the same pattern; "
+          "(analysis.simulation.scoring.depth_floor:\nthe mean over all positions and depths that light the same pattern; "
           "blurs over an edge or a corner\nof a lens cell leave depth and position trading too). "
           "Scoring below it takes a prior (depth_prior).")
     print("\ntargets, against every seed:")

@@ -47,12 +47,12 @@ def _timed(fn, repeats: int) -> tuple[float, object]:
 
 def prepare(folder: Path, n_particles: int, seed: int) -> None:
     """Simulated full-size exposure (with plasma glow), white image, table cached with its norms."""
-    from analysis.camera_model import CameraModel
-    from analysis.lightfield import build_table_from_model, save_table
-    from analysis.refocus import default_alphas, normalisation, subaperture_image
-    from analysis.scenarios import Particles, make_scenario
-    from analysis.sim_camera import simulated_camera_metadata
-    from analysis.simulate import render_exposure, render_white_image
+    from analysis.camera.model import CameraModel
+    from analysis.lightfield.table import build_table_from_model, save_table
+    from analysis.lightfield.refocus import default_alphas, normalisation, subaperture_image
+    from analysis.simulation.scenarios import Particles, make_scenario
+    from analysis.simulation.camera import simulated_camera_metadata
+    from analysis.simulation.render import render_exposure, render_white_image
 
     model = CameraModel.from_metadata(simulated_camera_metadata())
     parts = []
@@ -93,8 +93,8 @@ def worker(folder: Path, repeats: int, naive: bool) -> None:
     """A fresh process: load the cached table, refocus, time it, report memory."""
     import numba
 
-    from analysis import refocus as rf
-    from analysis.lightfield import load_table
+    from analysis.lightfield.table import refocus as rf
+    from analysis.lightfield.table import load_table
 
     base = _rss_mb()
     t_load, table = _timed(lambda: load_table(folder / "table.npz"), 1)

@@ -16,10 +16,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from _common import best_time, peak_rss_mb  # noqa: E402
 
-from analysis.camera_model import CameraModel  # noqa: E402
-from analysis.scenarios import SCENARIO_NAMES, make_scenario  # noqa: E402
-from analysis.sim_camera import simulated_camera_metadata  # noqa: E402
-from analysis.simulate import accumulate_particles, render_exposure, render_white_image, write_scenario  # noqa: E402
+from analysis.camera.model import CameraModel  # noqa: E402
+from analysis.simulation.scenarios import SCENARIO_NAMES, make_scenario  # noqa: E402
+from analysis.simulation.camera import simulated_camera_metadata  # noqa: E402
+from analysis.simulation.render import (accumulate_particles, render_exposure, render_white_image,
+    write_scenario)  # noqa: E402
 
 
 

@@ -6,7 +6,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from analysis.errors import AnalysisError
-from analysis.exposure import Exposure, exposure_from_lfp_bytes, exposure_from_raw_pair
+from analysis.formats.exposure import Exposure, exposure_from_lfp_bytes, exposure_from_raw_pair
 from service.queue import Job, JobQueue
 from service.store import ExposureRecord, Store
 

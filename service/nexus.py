@@ -8,7 +8,7 @@ from collections.abc import Mapping
 import h5py
 import numpy as np
 
-from analysis.particle_table import UNITS
+from analysis.formats.particle_table import UNITS
 
 
 def nx_group(parent: h5py.Group, name: str, nx_class: str) -> h5py.Group:

@@ -25,8 +25,8 @@ MAX_VIEW_SIDE = 512
 
 
 def read_task_exposure(task: JobTask):
-    """The :class:`analysis.exposure.Exposure` a task points at."""
-    from analysis.exposure import exposure_from_lfp_bytes, exposure_from_raw_pair
+    """The :class:`analysis.formats.exposure.Exposure` a task points at."""
+    from analysis.formats.exposure import exposure_from_lfp_bytes, exposure_from_raw_pair
 
     paths = [Path(p) for p in task.raw_paths]
     if len(paths) == 1:
@@ -37,7 +37,7 @@ def read_task_exposure(task: JobTask):
 
 
 def _calibration(calibration_dir: str | None, cache_dir: str | None, metadata: dict, serial: str | None):
-    from analysis.calibration import load_calibration
+    from analysis.calibration.calibrate import load_calibration
     from analysis.errors import NoWhiteImageError
 
     if calibration_dir is None:
@@ -48,7 +48,7 @@ def _calibration(calibration_dir: str | None, cache_dir: str | None, metadata: d
 
 
 def _params(parameters: dict | None):
-    from analysis.pipeline import PipelineParams
+    from analysis.pipeline.process import PipelineParams
 
     return PipelineParams.from_dict(parameters) if parameters else PipelineParams()
 
@@ -76,7 +76,7 @@ def run_task(task: JobTask, progress: Callable[[float], None] | None = None) -> 
     analysis.errors.AnalysisError
         For an input the pipeline cannot use (bad file, no white image, ...).
     """
-    from analysis.pipeline import process
+    from analysis.pipeline.process import process
 
     start = time.perf_counter()
     exposure = read_task_exposure(task)
@@ -104,7 +104,7 @@ def run_task(task: JobTask, progress: Callable[[float], None] | None = None) -> 
 @lru_cache(maxsize=1)
 def warm_up() -> float:
     """Import the analysis and compile its kernels once per process; returns seconds taken."""
-    from analysis.pipeline import warm_up as compile_pipeline
+    from analysis.pipeline.process import warm_up as compile_pipeline
 
     start = time.perf_counter()
     compile_pipeline()

@@ -47,8 +47,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from analysis.atomic_write import atomic_path
-from analysis.particle_table import UNITS
+from analysis.formats.atomic_write import atomic_path
+from analysis.formats.particle_table import UNITS
 from service.nexus import nx_group, read_table, write_process
 
 log = logging.getLogger(__name__)

@@ -55,7 +55,7 @@ class Settings(BaseSettings):
     # On first contact with a camera, also queue the pictures already on it.
     camera_pull_existing: bool = False
     run: str = "default"
-    # Pipeline parameters (fields of analysis.pipeline.PipelineParams), e.g.
+    # Pipeline parameters (fields of analysis.pipeline.process.PipelineParams), e.g.
     # PLENODUST_PIPELINE='{"n_slices": 60, "alpha_min": 0.99}'; empty for the defaults.
     pipeline: dict[str, Any] = Field(default_factory=dict)
     # Refocused slices kept per exposure for the dashboard's slice viewer.

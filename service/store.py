@@ -34,7 +34,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from analysis.atomic_write import atomic_path, write_all_atomic
+from analysis.formats.atomic_write import atomic_path, write_all_atomic
 from service import run_file
 from service.database import Database
 from service.nexus import nx_group, read_table, write_process, write_table

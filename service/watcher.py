@@ -21,7 +21,7 @@ from typing import Any
 
 import driver
 from analysis.errors import AnalysisError
-from analysis.whites import load_white_images
+from analysis.formats.whites import load_white_images
 from service.events import EventBus
 from service.ingest import NotAnExposure, ingest, parse_exposure
 from service.metrics import Metrics

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from analysis.exposure import Exposure, lfp_bytes, read_exposure
-from analysis.simulate import write_scenario
+from analysis.formats.exposure import Exposure, lfp_bytes, read_exposure
+from analysis.simulation.render import write_scenario
 
 # Small crops keep the tests fast on two cores; the pipeline still finds particles there.
 SIZE_PX = 480

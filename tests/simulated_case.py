@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.calibration import Calibration, load_calibration
-from analysis.exposure import Exposure, read_exposure
-from analysis.particle_table import read_csv
-from analysis.simulate import write_scenario
+from analysis.calibration.calibrate import Calibration, load_calibration
+from analysis.formats.exposure import Exposure, read_exposure
+from analysis.formats.particle_table import read_csv
+from analysis.simulation.render import write_scenario
 
 
 @dataclass(frozen=True)

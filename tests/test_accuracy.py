@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from analysis.accuracy import depth_floor, pixel_limited_alpha, single_lens
-from analysis.camera_model import CameraModel
-from analysis.scenarios import Particles
-from analysis.sim_camera import simulated_camera_metadata
-from analysis.simulate import particle_truth, render_exposure
+from analysis.simulation.scoring import depth_floor, pixel_limited_alpha, single_lens
+from analysis.camera.model import CameraModel
+from analysis.simulation.scenarios import Particles
+from analysis.simulation.camera import simulated_camera_metadata
+from analysis.simulation.render import particle_truth, render_exposure
 
 
 def model(size: int = 160) -> CameraModel:

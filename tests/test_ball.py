@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.accuracy import depth_floor, score
+from analysis.simulation.scoring import depth_floor, score
 from analysis.errors import ParameterError
-from analysis.maxima import find_maxima
-from analysis.moments import detect
-from analysis.pipeline import PipelineParams, process
+from analysis.detection.maxima import find_maxima
+from analysis.detection.moments import detect
+from analysis.pipeline.process import PipelineParams, process
 from simulated_case import simulated_case
 
 # A sensor crop that holds most of the 150-particle ball (about 130 particles): a few seconds.
@@ -31,7 +31,7 @@ def test_crowded_ball_found(ball):
     # Connected components alone merge neighbours' blobs and find about 40 % of this crop.
     assert s.recall >= 0.9 and s.precision >= 0.93
     assert s.lateral_rms_over_nn < 0.03
-    # Near focus the pixels leave depths open (analysis.accuracy.depth_floor): the fit comes within
+    # Near focus the pixels leave depths open (analysis.simulation.scoring.depth_floor): the fit comes within
     # 30 % of the best that any estimate from them can do.
     floor = depth_floor(truth, exposure.model.lattice, nn_mm=nn)[1]
     assert 0.03 < floor < 0.15

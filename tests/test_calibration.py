@@ -11,14 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.calibration import (Calibration, cache_path, load_calibration, read_calibration,
-                                  save_calibration, select_white_image)
-from analysis.camera_model import CameraModel, Lattice
+from analysis.calibration.calibrate import (Calibration, cache_path, load_calibration, read_calibration,
+    save_calibration, select_white_image)
+from analysis.camera.model import CameraModel, Lattice
 from analysis.errors import CalibrationError, CameraMismatchError, NoWhiteImageError
-from analysis.lattice_fit import balance_channels, fit_lattice, lens_centroids
-from analysis.sim_camera import SimulatedLens, simulated_camera_metadata, simulated_private_metadata
-from analysis.simulate import render_white_image
-from analysis.whites import WhiteImage, write_white_pair
+from analysis.calibration.lattice_fit import balance_channels, fit_lattice, lens_centroids
+from analysis.simulation.camera import SimulatedLens, simulated_camera_metadata, simulated_private_metadata
+from analysis.simulation.render import render_white_image
+from analysis.formats.whites import WhiteImage, write_white_pair
 
 SIZE = 800
 SERIAL = "A202160042"
@@ -254,7 +254,7 @@ def test_corrupt_cache_is_rebuilt(white_folder, tmp_path, caplog, damage):
     else:
         # A readable file, but of another white image, under this one's name.
         save_calibration(replace(first, white_sha1="f" * 40), path)
-    with caplog.at_level(logging.WARNING, logger="analysis.calibration"):
+    with caplog.at_level(logging.WARNING, logger="analysis.calibration.calibrate"):
         again = load_calibration(white_folder, meta, serial=SERIAL, cache_dir=cache)
     assert not again.from_cache
     assert again.lattice == first.lattice
@@ -284,7 +284,7 @@ def test_read_calibration_names_the_problem(tmp_path):
 
 def test_lattice_param_sanity():
     # The fundamentals the fit demodulates at are the hex lattice's shortest reciprocal vectors.
-    from analysis.lattice_fit import fundamental_frequencies
+    from analysis.calibration.lattice_fit import fundamental_frequencies
     lat = Lattice(origin_x=10.0, origin_y=20.0, pitch_px=9.9, rotation_rad=0.01, scale_y=1.001)
     g = fundamental_frequencies(lat)
     steps = lat.basis.T  # rows b_i, b_j
@@ -316,7 +316,7 @@ def test_cli_prints_choice_and_fit(white_folder, tmp_path, capsys):
 
 
 def test_demodulation_kernel_matches_a_direct_sum():
-    from analysis.lattice_fit import _BLOCK_PX, _STRIDE_PX, _demodulate, fundamental_frequencies
+    from analysis.calibration.lattice_fit import _BLOCK_PX, _STRIDE_PX, _demodulate, fundamental_frequencies
 
     rng = np.random.default_rng(4)
     image = rng.random((160, 192)).astype(np.float32)
@@ -347,7 +347,7 @@ def test_centroid_of_a_symmetric_spot_is_its_centre():
         image += np.exp(-((xs - x0) ** 2 + (ys - y0) ** 2) / (2 * 1.5 ** 2)).astype(np.float32)
     # Predicted centres a pixel off: the window follows the centroid.
     lattice = Lattice(origin_x=21.0, origin_y=17.0, pitch_px=12.0)
-    from analysis.lattice_fit import _centroids
+    from analysis.calibration.lattice_fit import _centroids
 
     out_x, out_y, out_w = np.empty(2), np.empty(2), np.empty(2)
     _centroids(image, np.array([21.0, 10.2]), np.array([17.0, 31.3]), 0.45 * lattice.pitch_px, 3,
@@ -363,8 +363,8 @@ def test_simulated_camera_folder_end_to_end(tmp_path):
     # the picture's focus step also as a dark twin) and one at another zoom.
     import json
 
-    from analysis.exposure import read_exposure
-    from analysis.simulate import write_scenario
+    from analysis.formats.exposure import read_exposure
+    from analysis.simulation.render import write_scenario
 
     files = write_scenario(tmp_path / "sim", "tilted-layer", 3, size=SIZE)
     exposure = read_exposure(files.lfp[0])

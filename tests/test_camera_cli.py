@@ -88,7 +88,7 @@ def test_usb_without_a_camera_fails_with_advice(capsys):
 
 
 def test_pull_from_a_simulated_camera_then_process_gives_particles(tmp_path, capsys):
-    pytest.importorskip("analysis.simulate")
+    pytest.importorskip("analysis.simulation.render")
     sim, pulled = tmp_path / "sim", tmp_path / "pulled"
     assert main(["simulate", "--out", str(sim), "--size", "800", "--quiet"]) == 0
     assert main(["camera", "pull", "--simulated", str(sim), "--out", str(pulled), "--quiet"]) == 0

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from analysis.camera_model import CameraModel, Lattice, green_mask
+from analysis.camera.model import CameraModel, Lattice, green_mask
 from analysis.errors import MetadataError
 
 

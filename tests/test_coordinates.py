@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from analysis.camera_model import CameraModel
-from analysis.coordinates import (ThinLensCalibration, UserCalibration, fit_tilted_layer, to_physical,
-                                  validate_plane)
+from analysis.camera.model import CameraModel
+from analysis.camera.coordinates import (ThinLensCalibration, UserCalibration, fit_tilted_layer, to_physical,
+    validate_plane)
 from analysis.errors import MetadataError, ParameterError
-from analysis.image_grid import ImageGrid
+from analysis.camera.image_grid import ImageGrid
 
 
 @pytest.fixture(scope="module")

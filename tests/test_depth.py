@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.depth import Tracks, find_depth_peaks, link_tracks, merge_duplicates
+from analysis.detection.curves import Tracks, find_depth_peaks, link_tracks, merge_duplicates
 from analysis.errors import ParameterError
-from analysis.moments import detect
+from analysis.detection.moments import detect
 
 ALPHAS = np.linspace(0.987, 1.013, 40)
 STEP = ALPHAS[1] - ALPHAS[0]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from analysis.depth_prior import neighbour_prior
+from analysis.depth.prior import neighbour_prior
 
 
 def hex_layer(rng, n_side=9, spacing=40.0):

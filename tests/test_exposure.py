@@ -17,17 +17,10 @@ from analysis.errors import (
     RawSizeError,
     TruncatedFileError,
 )
-from analysis.exposure import (
-    Exposure,
-    exposure_from_lfp_bytes,
-    exposure_from_raw_pair,
-    lfp_bytes,
-    read_exposure,
-    write_lfp,
-    write_raw_pair,
-)
-from analysis.lfp import read_container, sha1_ref
-from analysis.raw12 import pack12
+from analysis.formats.exposure import (Exposure, exposure_from_lfp_bytes, exposure_from_raw_pair, lfp_bytes,
+    read_exposure, write_lfp, write_raw_pair)
+from analysis.formats.lfp import read_container, sha1_ref
+from analysis.formats.raw12 import pack12
 
 SERIAL = "A202110453"
 
@@ -160,8 +153,8 @@ def test_wrong_image_section_size_in_lfp(real_metadata):
     blob = lfp_bytes(exp)
     small = copy.deepcopy(exp.metadata)
     small["image"]["width"] = 32
-    from analysis.lfp import build_container, json_bytes
-    from analysis.exposure import picture_toc
+    from analysis.formats.lfp import build_container, json_bytes
+    from analysis.formats.exposure import picture_toc
     meta, raw = json_bytes(small), pack12(exp.image)
     toc = picture_toc(sha1_ref(meta), sha1_ref(b"{}"), sha1_ref(raw))
     with pytest.raises(RawSizeError, match="image section"):
@@ -196,7 +189,7 @@ def test_truncated_lfp(real_metadata):
 
 
 def test_bundle_is_not_a_picture(tmp_path):
-    from analysis.whites import write_bundle
+    from analysis.formats.whites import write_bundle
     (path,) = write_bundle({"C:\\T1CALIB\\MOD_0000.TXT": b"{}"}, tmp_path)
     with pytest.raises(MetadataError, match="bundle"):
         exposure_from_lfp_bytes(path.read_bytes())

@@ -6,16 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import analysis.refine as refine
-from analysis.camera_model import CameraModel
-from analysis.lightfield import build_table_from_model
-from analysis.pipeline import FIT_TABLE_RIM_PX
-from analysis.ray_depth import (RayFit, _gather, _index, _lit_fraction, _pixel_footprint, _uv, aperture_per_lens_plane,
-                                fit_rays, render_fits)
-from analysis.refine import FINE_GRID, FINE_TEMPERATURE, WIDE_FINE_GRID, RayFitter
-from analysis.scenarios import Particles
-from analysis.sim_camera import simulated_camera_metadata
-from analysis.simulate import render_exposure, white_coverage
+import analysis.depth.refine as refine
+from analysis.camera.model import CameraModel
+from analysis.lightfield.table import build_table_from_model
+from analysis.pipeline.process import FIT_TABLE_RIM_PX
+from analysis.depth.rayfit import (RayFit, _gather, _index, _lit_fraction, _pixel_footprint, _uv,
+    aperture_per_lens_plane, fit_rays, render_fits)
+from analysis.depth.refine import FINE_GRID, FINE_TEMPERATURE, WIDE_FINE_GRID, RayFitter
+from analysis.simulation.scenarios import Particles
+from analysis.simulation.camera import simulated_camera_metadata
+from analysis.simulation.render import render_exposure, white_coverage
 
 # Blurs (radius on the MLA, lens pitches; negative: behind focus) from one lens to a wide disk.
 BLURS = np.array([0.3, -0.8, 1.4, -2.6, 3.5, 6.0])

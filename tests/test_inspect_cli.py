@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from analysis.exposure import Exposure, lfp_bytes, write_lfp, write_raw_pair
-from analysis.lfp import read_container
-from analysis.whites import WhiteImage, white_txt_bytes, write_bundle
+from analysis.formats.exposure import Exposure, lfp_bytes, write_lfp, write_raw_pair
+from analysis.formats.lfp import read_container
+from analysis.formats.whites import WhiteImage, white_txt_bytes, write_bundle
 from service.cli.main import main
 
 IMAGE_REF = "sha1-0360f825e6eed3c7c470fb79a755a54df07fae84"

@@ -8,15 +8,8 @@ import json
 import pytest
 
 from analysis.errors import ChecksumError, FormatError, MetadataError, MissingSectionError, TruncatedFileError
-from analysis.lfp import (
-    build_container,
-    container_bytes,
-    inspect_container,
-    read_container,
-    read_container_file,
-    section_bytes,
-    sha1_ref,
-)
+from analysis.formats.lfp import (build_container, container_bytes, inspect_container, read_container,
+    read_container_file, section_bytes, sha1_ref)
 
 STRIPPED = "f01-raw-image-section-stripped.lfp"
 IMAGE_REF = "sha1-0360f825e6eed3c7c470fb79a755a54df07fae84"

@@ -8,13 +8,13 @@ import json
 import numpy as np
 import pytest
 
-from analysis.calibration import Calibration
-from analysis.camera_model import CameraModel, green_mask
+from analysis.calibration.calibrate import Calibration
+from analysis.camera.model import CameraModel, green_mask
 from analysis.errors import CalibrationError, ParameterError
-from analysis.image_grid import ImageGrid
-from analysis.lightfield import build_table, build_table_from_model, load_table, save_table
-from analysis.sim_camera import simulated_camera_metadata
-from analysis.simulate import render_white_image
+from analysis.camera.image_grid import ImageGrid
+from analysis.lightfield.table import build_table, build_table_from_model, load_table, save_table
+from analysis.simulation.camera import simulated_camera_metadata
+from analysis.simulation.render import render_white_image
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ import pytest
 from scipy import stats
 
 from analysis.errors import ParameterError
-from analysis.moments import detect, estimate_noise
+from analysis.detection.moments import detect, estimate_noise
 
 
 def gaussian_spots(shape, xs, ys, amps, sigma, noise, rng):

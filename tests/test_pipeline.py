@@ -10,11 +10,11 @@ import h5py
 import numpy as np
 import pytest
 
-from analysis.accuracy import score
+from analysis.simulation.scoring import score
 from analysis.errors import CameraMismatchError, ParameterError
-from analysis.exposure import Exposure
-from analysis.particle_table import COLUMNS, read_csv, read_hdf5_columns
-from analysis.pipeline import PipelineParams, process, process_many
+from analysis.formats.exposure import Exposure
+from analysis.formats.particle_table import COLUMNS, read_csv, read_hdf5_columns
+from analysis.pipeline.process import PipelineParams, process, process_many
 from simulated_case import simulated_case
 
 # A sensor crop of the paper's tilted layer: about a dozen particles, a few seconds to simulate.
@@ -173,9 +173,9 @@ def test_shadowing_pairs_become_two_particles(tmp_path):
 
 def test_table_cache_keeps_the_newest_normalisation(layer, tmp_path):
     """Once the table holds as many normalisations as it keeps, a new alpha set still reaches the disk."""
-    from analysis.lightfield import load_table
-    from analysis.pipeline import get_table, table_cache_path
-    from analysis.refocus import MAX_NORMALISATIONS
+    from analysis.lightfield.table import load_table
+    from analysis.pipeline.process import get_table, table_cache_path
+    from analysis.lightfield.refocus import MAX_NORMALISATIONS
 
     _, exposure, calibration, _, _, _ = layer
     cache = tmp_path / "cache"
@@ -189,7 +189,7 @@ def test_table_cache_keeps_the_newest_normalisation(layer, tmp_path):
 
 def test_depth_prior_beats_what_the_pixels_alone_allow(tmp_path):
     """Particles whose blur fits in one lens leave a floor no pixel fit can beat; the layer's prior does."""
-    from analysis.accuracy import depth_floor
+    from analysis.simulation.scoring import depth_floor
 
     c = simulated_case(tmp_path, "tilted-layer", 3, size=1200)
     count, floor = depth_floor(c.truth, c.exposure.model.lattice, nn_mm=c.nn_mm)

@@ -9,8 +9,8 @@ import h5py
 import numpy as np
 import pytest
 
-from analysis.accuracy import score
-from analysis.particle_table import COLUMNS, read_csv
+from analysis.simulation.scoring import score
+from analysis.formats.particle_table import COLUMNS, read_csv
 from service.cli.main import main
 from simulated_case import mean_nn_mm
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from analysis.errors import RawSizeError
-from analysis.raw12 import F01_RAW_BYTES, pack12, unpack12
+from analysis.formats.raw12 import F01_RAW_BYTES, pack12, unpack12
 
 
 def test_documented_examples_unpack():

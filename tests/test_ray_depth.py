@@ -7,18 +7,18 @@ import dataclasses
 import numpy as np
 import pytest
 
-from analysis.calibration import load_calibration
-from analysis.camera_model import CameraModel
-from analysis.exposure import read_exposure
-from analysis.lightfield import build_table_from_model
-from analysis.particle_table import read_csv
-from analysis.pipeline import FIT_TABLE_RIM_PX, get_table
-from analysis.ray_depth import (_gather, _grid_costs, _index, _lit_fraction, _pixel_footprint, _uv, _weight,
-                                aperture_per_lens_plane, fit_rays)
-from analysis.refocus import select_samples
-from analysis.scenarios import Particles
-from analysis.sim_camera import simulated_camera_metadata
-from analysis.simulate import render_exposure, white_coverage, write_scenario
+from analysis.calibration.calibrate import load_calibration
+from analysis.camera.model import CameraModel
+from analysis.formats.exposure import read_exposure
+from analysis.lightfield.table import build_table_from_model
+from analysis.formats.particle_table import read_csv
+from analysis.pipeline.process import FIT_TABLE_RIM_PX, get_table
+from analysis.depth.rayfit import (_gather, _grid_costs, _index, _lit_fraction, _pixel_footprint, _uv,
+    _weight, aperture_per_lens_plane, fit_rays)
+from analysis.lightfield.refocus import select_samples
+from analysis.simulation.scenarios import Particles
+from analysis.simulation.camera import simulated_camera_metadata
+from analysis.simulation.render import render_exposure, white_coverage, write_scenario
 from simulated_case import mean_nn_mm
 
 
@@ -75,9 +75,9 @@ def test_fit_reports_undetermined_depth_for_a_single_lens(scene):
 
 
 def test_empty_start_list():
-    from analysis.lightfield import build_table_from_model
-    from analysis.camera_model import CameraModel
-    from analysis.sim_camera import simulated_camera_metadata
+    from analysis.lightfield.table import build_table_from_model
+    from analysis.camera.model import CameraModel
+    from analysis.simulation.camera import simulated_camera_metadata
 
     table = build_table_from_model(CameraModel.from_metadata(simulated_camera_metadata(size=64)))
     fit = fit_rays(np.zeros((64, 64), np.uint16), table, np.empty(0), np.empty(0), np.empty(0), background=0.0,
@@ -90,11 +90,11 @@ def test_fit_tells_in_front_of_focus_from_behind(blur, offset):
     """A blur of about one pitch spills a sliver of light into the neighbouring lenses; which side
     of their micro-images it lights flips with the sign of the defocus (the aperture maps onto
     the MLA mirrored), so the fit recovers the sign and size instead of averaging the two."""
-    from analysis.camera_model import CameraModel
-    from analysis.lightfield import build_table_from_model
-    from analysis.scenarios import Particles
-    from analysis.sim_camera import simulated_camera_metadata
-    from analysis.simulate import particle_truth, render_exposure, white_coverage
+    from analysis.camera.model import CameraModel
+    from analysis.lightfield.table import build_table_from_model
+    from analysis.simulation.scenarios import Particles
+    from analysis.simulation.camera import simulated_camera_metadata
+    from analysis.simulation.render import particle_truth, render_exposure, white_coverage
 
     model = CameraModel.from_metadata(simulated_camera_metadata(size=480))
     optics = model.optics
@@ -139,7 +139,7 @@ def test_prior_decides_only_where_the_pixels_cannot(scene):
 
 def test_refit_with_neighbours_light_taken_off_keeps_isolated_particles(scene):
     """Deblending adds each particle's own light back: an isolated particle refits to the same place."""
-    from analysis.ray_depth import render_fits
+    from analysis.depth.rayfit import render_fits
 
     exposure, calibration, table, truth, nn, s_hat, noise = scene
     ratio = aperture_per_lens_plane(calibration.model.optics)
@@ -219,8 +219,8 @@ def test_grid_costs_match_the_model_one_candidate_at_a_time(blur, points):
 
 def test_deblending_drops_a_particle_seen_twice(scene):
     """A second fit of one particle's light is left with nothing of its own once the first is refitted."""
-    from analysis.depth import Peaks
-    from analysis.refine import RayFitter, concat_fits, deblend, take_fit
+    from analysis.detection.curves import Peaks
+    from analysis.depth.refine import RayFitter, concat_fits, deblend, take_fit
 
     exposure, calibration, table, truth, nn, s_hat, noise = scene
     ratio = aperture_per_lens_plane(calibration.model.optics)
@@ -257,8 +257,8 @@ def _line_of_sight_scene(alphas, brightness):
 
 
 def _one_fit(model, table, s_hat, image, alpha0):
-    from analysis.depth import Peaks
-    from analysis.refine import RayFitter
+    from analysis.detection.curves import Peaks
+    from analysis.depth.refine import RayFitter
 
     ratio = aperture_per_lens_plane(model.optics)
     background = float(np.median((image.astype(float) - table.black_level)))
@@ -274,7 +274,7 @@ def _one_fit(model, table, s_hat, image, alpha0):
 
 
 def test_a_fit_holding_two_particles_on_one_line_of_sight_is_split():
-    from analysis.refine import split_shared
+    from analysis.depth.refine import split_shared
 
     truth = np.array([0.99810, 1.00297])  # a pair one fit took for one particle (shadowing seed 5)
     model, table, s_hat, image = _line_of_sight_scene(truth, [1985.0, 1900.0])
@@ -287,7 +287,7 @@ def test_a_fit_holding_two_particles_on_one_line_of_sight_is_split():
 
 
 def test_a_single_particle_is_not_split():
-    from analysis.refine import split_shared
+    from analysis.depth.refine import split_shared
 
     model, table, s_hat, image = _line_of_sight_scene([1.0028], [2600.0])
     fitter, peaks, fit = _one_fit(model, table, s_hat, image, 1.0028)
@@ -300,9 +300,9 @@ def test_depth_scale_of_blurred_particles_is_unbiased():
     each lens holds (the lens cell seen through the aperture, scaled by 1/c): a pixel model that
     spreads light wider or narrower than the sensor does scales every such depth. On noise-free
     particles, evenly spaced pixel points put them 1.1 % too far from focus."""
-    from analysis.refine import FINE_GRID, FINE_TEMPERATURE
-    from analysis.scenarios import Particles
-    from analysis.simulate import particle_truth
+    from analysis.depth.refine import FINE_GRID, FINE_TEMPERATURE
+    from analysis.simulation.scenarios import Particles
+    from analysis.simulation.render import particle_truth
 
     model = CameraModel.from_metadata(simulated_camera_metadata(size=640))
     optics = model.optics

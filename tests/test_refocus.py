@@ -7,15 +7,16 @@ import cv2
 import numpy as np
 import pytest
 
-from analysis._refocus_reference import refocus_reference
-from analysis.camera_model import CameraModel
+from analysis.lightfield.reference import refocus_reference
+from analysis.camera.model import CameraModel
 from analysis.errors import ParameterError
-from analysis.lightfield import build_table_from_model, load_table, save_table
-from analysis.refocus import (MAX_NORMALISATIONS, _gaussian_blur, alphas_for_depth_range, default_alphas, normalisation,
-                              prepare_normalisations, products, refocus_stack, select_samples, subaperture_image)
-from analysis.scenarios import Particles
-from analysis.sim_camera import simulated_camera_metadata
-from analysis.simulate import particle_truth, render_exposure, render_white_image
+from analysis.lightfield.table import build_table_from_model, load_table, save_table
+from analysis.lightfield.refocus import (MAX_NORMALISATIONS, _gaussian_blur, alphas_for_depth_range,
+    default_alphas, normalisation, prepare_normalisations, products, refocus_stack, select_samples,
+    subaperture_image)
+from analysis.simulation.scenarios import Particles
+from analysis.simulation.camera import simulated_camera_metadata
+from analysis.simulation.render import particle_truth, render_exposure, render_white_image
 
 BLACK = 168.0
 

@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from analysis.calibration import load_calibration
-from analysis.exposure import read_exposure
-from analysis.pipeline import process
+from analysis.calibration.calibrate import load_calibration
+from analysis.formats.exposure import read_exposure
+from analysis.pipeline.process import process
 from driver import open_simulated
 from driver.simulated import CameraFolder
 from service.app import create_app

@@ -9,7 +9,7 @@ import h5py
 import numpy as np
 import pytest
 
-from analysis.atomic_write import atomic_path, write_atomic
+from analysis.formats.atomic_write import atomic_path, write_atomic
 from service.database import Database
 from service.results import JobOutput
 from service.store import Store

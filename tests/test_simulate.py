@@ -9,15 +9,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from analysis._sim_kernels import paint_disks
-from analysis.camera_model import CameraModel
-from analysis.exposure import read_exposure
-from analysis.scenarios import SCENARIO_NAMES, Particles, make_scenario
-from analysis.sim_camera import (DEFAULT_LENS, ELECTRONS_PER_DN, LASER_532_RESPONSE, READ_NOISE_DN,
-                                 WHITE_RESPONSE, simulated_camera_metadata)
-from analysis.simulate import (accumulate_particles, channel_response_map, in_view, particle_truth, read_out,
-                               render_exposure, render_white_image, white_coverage, write_scenario)
-from analysis.whites import load_white_images
+from analysis.simulation.kernels import paint_disks
+from analysis.camera.model import CameraModel
+from analysis.formats.exposure import read_exposure
+from analysis.simulation.scenarios import SCENARIO_NAMES, Particles, make_scenario
+from analysis.simulation.camera import (DEFAULT_LENS, ELECTRONS_PER_DN, LASER_532_RESPONSE, READ_NOISE_DN,
+    WHITE_RESPONSE, simulated_camera_metadata)
+from analysis.simulation.render import (accumulate_particles, channel_response_map, in_view, particle_truth,
+    read_out, render_exposure, render_white_image, white_coverage, write_scenario)
+from analysis.formats.whites import load_white_images
 from service.cli.main import main as cli_main
 
 
@@ -451,8 +451,8 @@ def test_particles_nearer_than_the_focal_length_are_refused():
 
 def test_cluster_placed_off_focus_lights_no_single_lens(tmp_path):
     """--centre-z moves the cluster: a ball 2.6 mm in front of focus has every blur above a pitch."""
-    from analysis.accuracy import single_lens
-    from analysis.particle_table import read_csv
+    from analysis.simulation.scoring import single_lens
+    from analysis.formats.particle_table import read_csv
 
     assert cli_main(["simulate", "--scenario", "ball", "--seed", "2", "--size", "1200", "--centre-z", "57.4",
                      "--out", str(tmp_path), "--quiet"]) == 0

@@ -18,17 +18,10 @@ from analysis.errors import (
     NoWhiteImageError,
     RawSizeError,
 )
-from analysis.lfp import build_container, read_container, sha1_ref
-from analysis.raw12 import pack12
-from analysis.whites import (
-    WhiteImage,
-    load_white_images,
-    parse_white_txt,
-    read_bundle,
-    white_txt_bytes,
-    write_bundle,
-    write_white_pair,
-)
+from analysis.formats.lfp import build_container, read_container, sha1_ref
+from analysis.formats.raw12 import pack12
+from analysis.formats.whites import (WhiteImage, load_white_images, parse_white_txt, read_bundle,
+    white_txt_bytes, write_bundle, write_white_pair)
 
 SERIAL = "A202110453"
 W, H = 32, 16
@@ -142,7 +135,7 @@ def test_bundle_missing_data_section(tmp_path):
     toc = {"files": [{"name": "a", "dataRef": sha1_ref(b"x")}]}
     blob = build_container(toc, [b"x"])
     lfm = read_container(blob).sections[0]
-    from analysis.lfp import container_bytes
+    from analysis.formats.lfp import container_bytes
     (tmp_path / "data.C.0").write_bytes(container_bytes([lfm]))
     with pytest.raises(MissingSectionError, match="files\\[0\\].dataRef"):
         read_bundle(tmp_path / "data.C.0")
@@ -164,7 +157,7 @@ def test_load_from_camera_folder(white_metadata, tmp_path, caplog):
     (tmp_path / "MOD_0001.TXT").rename(tmp_path / "mod_0001.txt")  # letter case from FAT copies
     (tmp_path / "MOD_0009.RAW").write_bytes(b"\x00" * 768)  # no .TXT: skipped with a warning
     (tmp_path / "IMG_0001.RAW").write_bytes(b"")  # not a white image
-    with caplog.at_level(logging.WARNING, logger="analysis.whites"):
+    with caplog.at_level(logging.WARNING, logger="analysis.formats.whites"):
         loaded = load_white_images(tmp_path)
     assert "MOD_0009" in caplog.text
     assert [w.name for w in loaded] == ["MOD_0000", "MOD_0001", "MOD_0002"]

@@ -8,10 +8,10 @@ import sys
 import time
 from pathlib import Path
 
-from analysis.calibration import Calibration, cache_path, cached_calibration, select_white_image
+from analysis.calibration.calibrate import Calibration, cache_path, cached_calibration, select_white_image
 from analysis.errors import AnalysisError
-from analysis.frame_metadata import parse_txt
-from analysis.whites import load_white_images
+from analysis.formats.frame_metadata import parse_txt
+from analysis.formats.whites import load_white_images
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -11,7 +11,7 @@ import json
 import sys
 from pathlib import Path
 
-from analysis.file_report import inspect_file
+from analysis.formats.file_report import inspect_file
 
 EXIT_OK, EXIT_PROBLEMS, EXIT_UNREADABLE = 0, 1, 2
 

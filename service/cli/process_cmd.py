@@ -42,7 +42,7 @@ def default_cache_dir() -> Path:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from analysis.pipeline import PipelineParams
+    from analysis.pipeline.process import PipelineParams
 
     d = PipelineParams()
     p = subparsers.add_parser(
@@ -99,7 +99,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def params_from_args(args: argparse.Namespace) -> Any:
-    from analysis.pipeline import PipelineParams
+    from analysis.pipeline.process import PipelineParams
 
     return PipelineParams(
         alpha_min=args.alpha_min, alpha_max=args.alpha_max, n_slices=args.slices,
@@ -135,7 +135,7 @@ class _Calibrations:
         self._loaded: dict[tuple, Any] = {}
 
     def __call__(self, exposure: Any) -> Any:
-        from analysis.calibration import load_calibration
+        from analysis.calibration.calibrate import load_calibration
 
         lens = exposure.metadata.get("devices", {}).get("lens", {})
         key = (exposure.serial, lens.get("zoomStep"), lens.get("focusStep"))
@@ -146,9 +146,9 @@ class _Calibrations:
 
 
 def run(args: argparse.Namespace) -> int:
-    from analysis.exposure import read_exposure
-    from analysis.particle_table import combine, write_csv, write_hdf5
-    from analysis.pipeline import process
+    from analysis.formats.exposure import read_exposure
+    from analysis.formats.particle_table import combine, write_csv, write_hdf5
+    from analysis.pipeline.process import process
 
     try:
         params = params_from_args(args)

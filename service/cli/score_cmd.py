@@ -41,10 +41,10 @@ def _exposure_beside(truth: Path) -> Path | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from analysis.accuracy import depth_floor, score
-    from analysis.camera_model import CameraModel
-    from analysis.exposure import read_exposure
-    from analysis.particle_table import read_table
+    from analysis.simulation.scoring import depth_floor, score
+    from analysis.camera.model import CameraModel
+    from analysis.formats.exposure import read_exposure
+    from analysis.formats.particle_table import read_table
 
     try:
         found = read_table(args.table, frame=args.frame)

@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     from analysis.errors import ParameterError
 
     try:
-        from analysis.pipeline import PipelineParams
+        from analysis.pipeline.process import PipelineParams
 
         PipelineParams.from_dict(settings.pipeline).validate()
     except ParameterError as exc:

@@ -8,9 +8,9 @@ import time
 from pathlib import Path
 
 from analysis.errors import AnalysisError
-from analysis.scenarios import SCENARIO_NAMES
-from analysis.sim_camera import F01_SIZE
-from analysis.simulate import write_scenario
+from analysis.simulation.scenarios import SCENARIO_NAMES
+from analysis.simulation.camera import F01_SIZE
+from analysis.simulation.render import write_scenario
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

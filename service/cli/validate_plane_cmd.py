@@ -25,8 +25,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from analysis.coordinates import validate_plane
-    from analysis.particle_table import read_table
+    from analysis.camera.coordinates import validate_plane
+    from analysis.formats.particle_table import read_table
 
     try:
         columns = read_table(args.table, frame=args.frame)

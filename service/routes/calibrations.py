@@ -13,7 +13,7 @@ from fastapi.responses import JSONResponse
 from starlette.datastructures import UploadFile
 
 from analysis.errors import AnalysisError
-from analysis.whites import load_white_images
+from analysis.formats.whites import load_white_images
 from service.deps import ApiKey, State
 from service.problems import Problem
 
