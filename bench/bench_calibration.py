@@ -29,7 +29,8 @@ sys.path.insert(0, str(ROOT))
 from _common import best_time, peak_rss_mb  # noqa: E402
 os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".cache" / "numba"))
 
-from analysis.calibration.calibrate import calibrate, load_calibration, read_calibration, cache_path  # noqa: E402
+from analysis.calibration.calibrate import calibrate
+from analysis.calibration.cache import load_calibration, read_calibration, cache_path  # noqa: E402
 from analysis.camera.model import CameraModel, Lattice  # noqa: E402
 from analysis.calibration.lattice_fit import fit_lattice  # noqa: E402
 from analysis.simulation.camera import simulated_camera_metadata, simulated_private_metadata  # noqa: E402

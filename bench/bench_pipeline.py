@@ -36,10 +36,12 @@ os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".cache" / "numba"))
 import numpy as np  # noqa: E402
 
 from analysis.simulation.scoring import BLUR_BINS, Score, depth_floor, score  # noqa: E402
-from analysis.calibration.calibrate import load_calibration  # noqa: E402
+from analysis.cache import Cache  # noqa: E402
+from analysis.calibration.cache import load_calibration  # noqa: E402
 from analysis.formats.exposure import read_exposure  # noqa: E402
 from analysis.formats.particle_table import read_csv  # noqa: E402
-from analysis.pipeline.process import PipelineParams, process, warm_up  # noqa: E402
+from analysis.pipeline.params import PipelineParams
+from analysis.pipeline.process import process, warm_up  # noqa: E402
 
 TARGETS = {
     "tilted-layer": dict(recall=0.98, precision=0.95, depth_fit=0.035, depth_abs=0.05, lateral=0.015),
@@ -91,12 +93,13 @@ def measure_case(folder: Path, params: PipelineParams, repeat: int) -> dict:
                                    cache_dir=cache)
     load_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    process(exposure, calibration, params, cache_dir=cache)  # first run: tables from the disk cache
+    tables = Cache(directory=cache)
+    process(exposure, calibration, params, cache=tables)  # first run: tables from the disk cache
     first_s = time.perf_counter() - t0
     times = []
     for _ in range(repeat):
         t0 = time.perf_counter()
-        result = process(exposure, calibration, params, cache_dir=cache)
+        result = process(exposure, calibration, params, cache=tables)
         times.append(time.perf_counter() - t0)
     truth = read_csv(folder / "IMG_0001.truth.csv")
     s = score(result.particles, truth, nn_mm=nn)

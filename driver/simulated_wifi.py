@@ -21,7 +21,7 @@ import threading
 from driver import protocol as p
 from driver.errors import ProtocolError
 from driver.simulated import CameraFolder, FaultPlan, SimulatedCamera
-from driver.wifi import _recv_exact
+from driver.wifi import recv_exact
 
 log = logging.getLogger(__name__)
 
@@ -150,9 +150,9 @@ class SimulatedWifiServer:
 
     def _serve_one(self, conn: socket.socket) -> bool:
         """Answer one framed command; False when the connection should end."""
-        header = p.decode_wifi_header(bytes(_recv_exact(conn, p.WIFI_HEADER_LENGTH)))
+        header = p.decode_wifi_header(bytes(recv_exact(conn, p.WIFI_HEADER_LENGTH)))
         reading = bool(header.flags & p.WIFI_FLAG_READ)
-        data_out = None if reading else bytes(_recv_exact(conn, header.length)) if header.length else b""
+        data_out = None if reading else bytes(recv_exact(conn, header.length)) if header.length else b""
         hits: set[str] = set()
         with self._lock:
             if header.command[0] == p.OP_DOWNLOAD:

@@ -26,7 +26,8 @@ CallbackListener = Callable[[str, str], None]
 """Called as ``listener(name, argument)``, e.g. ``("[NewPictureAvailable]", "sha1-...")``."""
 
 
-def _recv_exact(sock: socket.socket, n: int, into: bytearray | None = None) -> bytearray:
+def recv_exact(sock: socket.socket, n: int, into: bytearray | None = None) -> bytearray:
+    """Exactly ``n`` bytes from ``sock`` (into ``into`` when given); the peer closing first is an error."""
     out = into if into is not None else bytearray(n)
     view = memoryview(out)
     got = 0
@@ -139,7 +140,7 @@ class WifiTransport:
             message = p.encode_wifi_header(command, length=len(payload), flags=0) + payload
         try:
             sock.sendall(message)
-            header = p.decode_wifi_header(bytes(_recv_exact(sock, p.WIFI_HEADER_LENGTH)))
+            header = p.decode_wifi_header(bytes(recv_exact(sock, p.WIFI_HEADER_LENGTH)))
             if not header.flags & p.WIFI_FLAG_RESPONSE or header.command != command:
                 raise ProtocolError(f"the reply (flags {header.flags:#x}, command {header.command[:3].hex()}) "
                                     f"does not answer command {command[:3].hex()}")
@@ -150,7 +151,7 @@ class WifiTransport:
                                     f"{data_in_length}-byte read")
             if len(self._reply) < header.length:
                 self._reply = bytearray(header.length)
-            _recv_exact(sock, header.length, self._reply)
+            recv_exact(sock, header.length, self._reply)
             return memoryview(self._reply)[:header.length]
         except socket.timeout as exc:
             self._drop()

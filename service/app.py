@@ -18,7 +18,7 @@ from fastapi import FastAPI
 from fastapi.responses import FileResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
-from analysis.pipeline.process import PipelineParams
+from analysis.pipeline.params import PipelineParams
 from service.database import Database
 from service.deps import ServiceState
 from service.events import EventBus

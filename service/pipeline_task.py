@@ -37,7 +37,7 @@ def read_task_exposure(task: JobTask):
 
 
 def _calibration(calibration_dir: str | None, cache_dir: str | None, metadata: dict, serial: str | None):
-    from analysis.calibration.calibrate import load_calibration
+    from analysis.calibration.cache import load_calibration
     from analysis.errors import NoWhiteImageError
 
     if calibration_dir is None:
@@ -48,7 +48,7 @@ def _calibration(calibration_dir: str | None, cache_dir: str | None, metadata: d
 
 
 def _params(parameters: dict | None):
-    from analysis.pipeline.process import PipelineParams
+    from analysis.pipeline.params import PipelineParams
 
     return PipelineParams.from_dict(parameters) if parameters else PipelineParams()
 
@@ -68,6 +68,19 @@ def _view_slices(stack: np.ndarray, alphas: np.ndarray) -> tuple[np.ndarray, np.
     return scaled.astype(np.uint8), np.asarray(alphas, dtype=np.float64)[picked], shrink
 
 
+def _worker_cache(directory: Path | None):
+    """This worker process's cache of look-up tables (kept across its jobs)."""
+    from analysis.cache import Cache
+
+    global _cache
+    if _cache is None or _cache.directory != directory:
+        _cache = Cache(directory=directory)
+    return _cache
+
+
+_cache = None
+
+
 def run_task(task: JobTask, progress: Callable[[float], None] | None = None) -> JobOutput:
     """Process one exposure and return its particle table and what the dashboard shows.
 
@@ -84,8 +97,9 @@ def run_task(task: JobTask, progress: Callable[[float], None] | None = None) -> 
                                exposure.serial)
     params = _params(task.parameters)
     cache_dir = Path(task.calibration_cache_dir) if task.calibration_cache_dir else None
-    result = process(exposure, calibration, params, keep_stack=task.keep_slices, progress=progress,
-                     cache_dir=cache_dir)
+    report = None if progress is None else (lambda fraction, stage: progress(fraction))
+    result = process(exposure, calibration, params, keep_stack=task.keep_slices, progress=report,
+                     cache=_worker_cache(cache_dir))
     output = JobOutput(columns={name: np.asarray(col) for name, col in result.particles.items()},
                        parameters=result.params.to_dict())
     provenance = result.metadata()

@@ -10,7 +10,8 @@ from analysis.simulation.scoring import depth_floor, score
 from analysis.errors import ParameterError
 from analysis.detection.maxima import find_maxima
 from analysis.detection.moments import detect
-from analysis.pipeline.process import PipelineParams, process
+from analysis.pipeline.params import PipelineParams
+from analysis.pipeline.process import process
 from simulated_case import simulated_case
 
 # A sensor crop that holds most of the 150-particle ball (about 130 particles): a few seconds.
@@ -26,7 +27,7 @@ def ball(tmp_path_factory):
 def test_crowded_ball_found(ball):
     exposure, calibration, truth, nn, cache = ball
     assert truth["X"].size >= 100
-    result = process(exposure, calibration, PipelineParams(), cache_dir=cache)
+    result = process(exposure, calibration, PipelineParams(), cache=cache)
     s = score(result.particles, truth, nn_mm=nn)
     # Connected components alone merge neighbours' blobs and find about 40 % of this crop.
     assert s.recall >= 0.9 and s.precision >= 0.93
@@ -42,7 +43,7 @@ def test_components_alone_merge_neighbours(ball):
     """The same crop without the stack's maxima: most particles are lost (what the maxima fix)."""
     exposure, calibration, truth, nn, cache = ball
     params = PipelineParams(maxima_half_slices=-1, merge_slices=2.0, max_fit_residual=0.6)
-    s = score(process(exposure, calibration, params, cache_dir=cache).particles, truth, nn_mm=nn)
+    s = score(process(exposure, calibration, params, cache=cache).particles, truth, nn_mm=nn)
     assert s.recall < 0.7
 
 

@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.calibration.calibrate import (Calibration, cache_path, load_calibration, read_calibration,
-    save_calibration, select_white_image)
+from analysis.calibration.calibrate import Calibration
+from analysis.calibration.cache import cache_path, load_calibration, read_calibration, save_calibration
+from analysis.calibration.white_choice import select_white_image
 from analysis.camera.model import CameraModel, Lattice
 from analysis.errors import CalibrationError, CameraMismatchError, NoWhiteImageError
 from analysis.calibration.lattice_fit import balance_channels, fit_lattice, lens_centroids

@@ -9,14 +9,18 @@ import pytest
 import analysis.depth.refine as refine
 from analysis.camera.model import CameraModel
 from analysis.lightfield.table import build_table_from_model
-from analysis.pipeline.process import FIT_TABLE_RIM_PX
-from analysis.depth.rayfit import (RayFit, _gather, _index, _lit_fraction, _pixel_footprint, _uv,
-    aperture_per_lens_plane, fit_rays, render_fits)
-from analysis.depth.refine import FINE_GRID, FINE_TEMPERATURE, WIDE_FINE_GRID, RayFitter
+from analysis.pipeline.tables import FIT_TABLE_RIM_PX
+from analysis.depth.deblend import seen_twice
+from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, pixel_footprint, render_fits
+from analysis.depth.render_kernels import lit_fraction
+from analysis.depth.refine import COARSE_TEMPERATURE, FINE_GRID, WIDE_FINE_GRID, RayFitter
+from analysis.depth.table_index import TableIndex
 from analysis.simulation.scenarios import Particles
 from analysis.simulation.camera import simulated_camera_metadata
 from analysis.simulation.render import render_exposure, white_coverage
 
+# The pipeline's coarse pass (analysis.pipeline.process builds it from PipelineParams' defaults).
+COARSE = FitGrid(depths=17, lateral_pitches=0.4, positions=5, pixel_points=1, temperature=COARSE_TEMPERATURE)
 # Blurs (radius on the MLA, lens pitches; negative: behind focus) from one lens to a wide disk.
 BLURS = np.array([0.3, -0.8, 1.4, -2.6, 3.5, 6.0])
 
@@ -26,7 +30,7 @@ def scene():
     model = CameraModel.from_metadata(simulated_camera_metadata(size=480))
     optics = model.optics
     table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
-    idx = _index(table)
+    idx = TableIndex(table)
     # Spread out along a line through the centre, off the lens centres.
     t = np.linspace(-0.6, 0.6, BLURS.size)
     s_hat = np.column_stack([t * 40 * idx.pitch_m + 0.13 * idx.pitch_m, 0.3 * t * 40 * idx.pitch_m - 0.07 * idx.pitch_m])
@@ -42,23 +46,24 @@ def scene():
 def test_render_matches_the_model_sample_by_sample(scene):
     model, table, _, s_hat, alpha = scene
     ratio = aperture_per_lens_plane(model.optics)
-    idx = _index(table)
+    idx = TableIndex(table)
     fit = RayFit(sx_m=s_hat[:, 0], sy_m=s_hat[:, 1], alpha=alpha, intensity=np.linspace(500.0, 900.0, alpha.size),
                  n_lit=np.zeros(alpha.size, np.int64), residual=np.zeros(alpha.size), alpha_spread=np.zeros(alpha.size))
     out = render_fits(table, fit, aperture_per_lens_plane=ratio)
     # Every sample within reach of each particle, through the model one sample at a time.
     reach = np.abs(1.0 - 1.0 / alpha) * idx.radius_m + 1.8 * idx.pitch_m
-    lens_ptr, sample_ptr, ids, centres = _gather(idx, fit.sx_m, fit.sy_m, reach)
-    uv = _uv(table, ids)
-    sub = _pixel_footprint(3, 0.5) * idx.u_per_px
+    g = idx.gather(fit.sx_m, fit.sy_m, reach)
+    lens_ptr, sample_ptr, ids, centres = g.lens_ptr, g.sample_ptr, g.ids, g.centres
+    uv = idx.uv(ids)
+    sub = pixel_footprint(3, 0.5) * idx.u_per_px
+    cells = idx.cells(ratio)
     expected = np.zeros(table.n_samples, dtype=np.float32)
     for p in range(len(fit)):
         c = 1.0 - 1.0 / alpha[p]
         for lens in range(lens_ptr[p], lens_ptr[p + 1]):
             for j in range(sample_ptr[lens], sample_ptr[lens + 1]):
-                f = _lit_fraction(uv[j, 0], uv[j, 1], centres[lens, 0], centres[lens, 1], fit.sx_m[p], fit.sy_m[p], c,
-                                  idx.normals, idx.half_sq, idx.neighbours * ratio, idx.neighbours, sub,
-                                  table.aperture_radius_m ** 2 * (1 + 1e-9))
+                f = lit_fraction(uv[j, 0], uv[j, 1], centres[lens, 0], centres[lens, 1], fit.sx_m[p], fit.sy_m[p], c,
+                                 cells, sub)
                 if f > 0.0:
                     expected[ids[j]] += fit.intensity[p] * f
     # Each particle lights about a micro-image's worth of samples, rim samples (crosstalk) included.
@@ -68,7 +73,7 @@ def test_render_matches_the_model_sample_by_sample(scene):
 
 def _fitter(model, table, image) -> RayFitter:
     return RayFitter(image, table, table.grid, background=0.0, aperture_per_lens_plane=aperture_per_lens_plane(model.optics),
-                     alpha_half_range=0.004, fit_depths=17, fit_lateral=5, min_intensity=10.0, max_residual=0.35,
+                     alpha_half_range=0.004, coarse=COARSE, min_intensity=10.0, max_residual=0.35,
                      merge_radius_px=1.5, merge_alpha=0.0026)
 
 
@@ -88,10 +93,10 @@ def test_fits_in_chunks_and_by_blur_equal_single_calls(scene, monkeypatch):
     wide = np.abs(BLURS) > refine.WIDE_BLUR_PITCHES  # the start's 0.0007 in alpha moves a blur by ~0.2 pitch
     assert wide.any() and (~wide).any()
     args = dict(background=0.0, aperture_per_lens_plane=fitter.aperture_per_lens_plane, alpha_half_range=0.004,
-                n_alpha=17, coarse_lateral=5, temperature=FINE_TEMPERATURE)
+                coarse=COARSE)
     for rows, grid in ((np.flatnonzero(~wide), FINE_GRID), (np.flatnonzero(wide), WIDE_FINE_GRID)):
         one = fit_rays(image, table, sx[rows], sy[rows], a[rows], fine=grid, **args)
-        _same(refine.take_fit(got, rows), one)
+        _same(got.take(rows), one)
     # The fits found the particles (the comparison is not one of empty fits).
     assert np.all(got.intensity > 100.0)
     # An explicit grid applies to all, in chunks too.
@@ -115,11 +120,11 @@ def test_screen_drops_a_second_fit_of_one_particle_and_only_what_the_full_refit_
     assert np.all(fit.intensity > 100.0)
     pitch = float(np.hypot(*table.basis_m[:, 0]))
     for k in (2, BLURS.size - 1):  # a blur of about a pitch, and the widest
-        copy = refine.take_fit(fit, np.array([k]))
+        copy = fit.take(np.array([k]))
         copy = RayFit(**{**{n: getattr(copy, n) for n in RayFit.__dataclass_fields__},
                          "sx_m": copy.sx_m + 0.3 * pitch, "alpha": copy.alpha + 0.0015})
-        both = refine.concat_fits(fit, copy)
-        twice = refine.seen_twice(fitter, both)
+        both = RayFit.concat(fit, copy)
+        twice = seen_twice(fitter, both)
         full = fitter.fit(both.sx_m, both.sy_m, both.alpha, subtract=fitter.render(both), own=both)
         kept = (full.intensity > fitter.min_intensity) & (full.residual <= fitter.max_residual)
         assert not (twice & kept).any(), (k, twice, kept)

@@ -12,6 +12,7 @@ from analysis.calibration.calibrate import Calibration
 from analysis.camera.model import CameraModel, green_mask
 from analysis.errors import CalibrationError, ParameterError
 from analysis.camera.image_grid import ImageGrid
+from analysis.cache import Cache
 from analysis.lightfield.table import build_table, build_table_from_model, load_table, save_table
 from analysis.simulation.camera import simulated_camera_metadata
 from analysis.simulation.render import render_white_image
@@ -96,17 +97,20 @@ def test_white_image_becomes_the_weights(model):
 
 
 def test_save_and_load_round_trip(tmp_path, table):
-    table._normalisations[b"key"] = np.arange(6, dtype=np.float32).reshape(3, 2)
-    path = save_table(table, tmp_path / "lot.npz")
-    back = load_table(path)
+    cache = Cache()
+    cache.put(("normalisation", table.uid, b"key"), np.arange(6, dtype=np.float32).reshape(3, 2))
+    cache.put(("normalisation", "another table", b"key"), np.ones(3, dtype=np.float32))
+    path = save_table(table, tmp_path / "lot.npz", cache=cache)
+    fresh = Cache()
+    back = load_table(path, cache=fresh)
     for name in ("pixel_index", "lens", "u_m", "v_m", "weight", "lens_ij", "lens_xy_m", "basis_m"):
         assert np.array_equal(getattr(back, name), getattr(table, name)), name
         assert getattr(back, name).dtype == getattr(table, name).dtype, name
-    for name in ("width", "height", "aperture_radius_m", "micro_image_radius_px", "rim_px", "black_level"):
+    for name in ("width", "height", "aperture_radius_m", "micro_image_radius_px", "rim_px", "black_level", "uid"):
         assert getattr(back, name) == getattr(table, name), name
     assert back.grid == table.grid
-    assert np.array_equal(back._normalisations[b"key"], table._normalisations[b"key"])
-    del table._normalisations[b"key"]
+    assert len(fresh) == 1   # this table's normalisation only
+    assert np.array_equal(fresh.get(("normalisation", table.uid, b"key")), np.arange(6).reshape(3, 2))
 
 
 def test_broken_cache_says_rebuild(tmp_path):

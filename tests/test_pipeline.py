@@ -10,11 +10,13 @@ import h5py
 import numpy as np
 import pytest
 
+from analysis.cache import Cache
 from analysis.simulation.scoring import score
 from analysis.errors import CameraMismatchError, ParameterError
 from analysis.formats.exposure import Exposure
 from analysis.formats.particle_table import COLUMNS, read_csv, read_hdf5_columns
-from analysis.pipeline.process import PipelineParams, process, process_many
+from analysis.pipeline.params import PipelineParams
+from analysis.pipeline.process import process, process_many
 from simulated_case import simulated_case
 
 # A sensor crop of the paper's tilted layer: about a dozen particles, a few seconds to simulate.
@@ -30,7 +32,7 @@ def layer(tmp_path_factory):
 @pytest.fixture(scope="module")
 def layer_result(layer):
     folder, exposure, calibration, truth, nn, cache = layer
-    return process(exposure, calibration, PipelineParams(), keep_stack=True, cache_dir=cache)
+    return process(exposure, calibration, PipelineParams(), keep_stack=True, cache=cache)
 
 
 def test_tilted_layer_recovered(layer, layer_result):
@@ -53,8 +55,8 @@ def test_tilted_layer_recovered(layer, layer_result):
 def test_depth_is_not_just_the_stack_maximum(layer):
     """The raw-pixel fit improves on the brightness maxima of the refocused stack."""
     folder, exposure, calibration, truth, nn, cache = layer
-    plain = process(exposure, calibration, PipelineParams(refine=False), cache_dir=cache)
-    refined = process(exposure, calibration, PipelineParams(refine=True), cache_dir=cache)
+    plain = process(exposure, calibration, PipelineParams(refine=False), cache=cache)
+    refined = process(exposure, calibration, PipelineParams(refine=True), cache=cache)
     s_plain = score(plain.particles, truth, nn_mm=nn)
     s_refined = score(refined.particles, truth, nn_mm=nn)
     assert s_refined.depth_abs_rms_over_nn < s_plain.depth_abs_rms_over_nn
@@ -97,7 +99,7 @@ def test_csv_and_hdf5_round_trip(layer_result, tmp_path):
 def test_empty_frame_gives_empty_well_formed_result(layer, tmp_path):
     _, exposure, calibration, _, _, cache = layer
     dark = dataclasses.replace(exposure, image=np.full_like(exposure.image, 168), sha1=None)
-    r = process(dark, calibration, cache_dir=cache)
+    r = process(dark, calibration, cache=cache)
     assert len(r) == 0 and any("no particles" in w for w in r.warnings)
     back = read_csv(r.to_csv(tmp_path / "empty.csv"))
     assert list(back) == list(COLUMNS) and back["x"].size == 0
@@ -106,13 +108,13 @@ def test_empty_frame_gives_empty_well_formed_result(layer, tmp_path):
 def test_saturated_frame_is_reported_not_processed(layer):
     _, exposure, calibration, _, _, cache = layer
     white = dataclasses.replace(exposure, image=np.full_like(exposure.image, 4095), sha1=None)
-    r = process(white, calibration, cache_dir=cache)
+    r = process(white, calibration, cache=cache)
     assert len(r) == 0 and any("saturated" in w for w in r.warnings)
 
 
 def test_alpha_range_without_particles(layer):
     _, exposure, calibration, _, _, cache = layer
-    r = process(exposure, calibration, PipelineParams(alpha_min=1.03, alpha_max=1.05, n_slices=10), cache_dir=cache)
+    r = process(exposure, calibration, PipelineParams(alpha_min=1.03, alpha_max=1.05, n_slices=10), cache=cache)
     assert len(r) == 0 and r.warnings
 
 
@@ -120,12 +122,12 @@ def test_other_camera_is_refused(layer):
     _, exposure, calibration, _, _, cache = layer
     other = dataclasses.replace(exposure, private_metadata={"camera": {"serialNumber": "A999999999"}}, sha1=None)
     with pytest.raises(CameraMismatchError, match="A999999999"):
-        process(other, calibration, cache_dir=cache)
+        process(other, calibration, cache=cache)
     meta = json.loads(json.dumps(exposure.metadata))
     meta["devices"]["mla"]["lensPitch"] *= 1.0001
     unknown = Exposure(image=exposure.image, metadata=meta, private_metadata={}, sha1=exposure.sha1)
     with pytest.raises(CameraMismatchError, match="micro-lens array"):
-        process(unknown, calibration, cache_dir=cache)
+        process(unknown, calibration, cache=cache)
 
 
 def test_params_round_trip_and_refusals():
@@ -142,7 +144,7 @@ def test_params_round_trip_and_refusals():
 def test_user_calibration_sets_the_scale(layer, layer_result):
     _, exposure, calibration, _, _, cache = layer
     r = process(exposure, calibration, PipelineParams(pixel_size_mm=0.05, depth_per_alpha_mm=-300.0,
-                                                      reference_z_mm=60.0), cache_dir=cache)
+                                                      reference_z_mm=60.0), cache=cache)
     assert r.coordinates["kind"] == "user"
     p = r.particles
     assert np.allclose(p["Z"], 60.0 - 300.0 * (p["alpha"] - 1.0))
@@ -151,7 +153,7 @@ def test_user_calibration_sets_the_scale(layer, layer_result):
 
 def test_batch_shares_calibration(layer):
     folder, exposure, calibration, _, _, cache = layer
-    results = list(process_many([folder / "IMG_0001.lfp", exposure], calibration, cache_dir=cache))
+    results = list(process_many([folder / "IMG_0001.lfp", exposure], calibration, cache=cache))
     assert len(results) == 2 and len(results[0]) == len(results[1])
     assert np.allclose(results[0].particles["Z"], results[1].particles["Z"])
     assert not math.isnan(results[0].timings["total"])
@@ -171,20 +173,20 @@ def test_shadowing_pairs_become_two_particles(tmp_path):
     assert merged.pairs_separated < s.pairs_separated
 
 
-def test_table_cache_keeps_the_newest_normalisation(layer, tmp_path):
-    """Once the table holds as many normalisations as it keeps, a new alpha set still reaches the disk."""
+def test_saved_table_carries_every_new_normalisation(layer, tmp_path):
+    """Each new alpha set's normalisation reaches the disk with the table, so a fresh process starts fast."""
     from analysis.lightfield.table import load_table
-    from analysis.pipeline.process import get_table, table_cache_path
-    from analysis.lightfield.refocus import MAX_NORMALISATIONS
+    from analysis.pipeline.tables import get_table, normalisation_keys, table_cache_path
 
     _, exposure, calibration, _, _, _ = layer
-    cache = tmp_path / "cache"
-    for n in range(5, 6 + MAX_NORMALISATIONS):
-        process(exposure, calibration, PipelineParams(n_slices=n, refine=False), cache_dir=cache)
-    table = get_table(calibration, cache_dir=cache)
-    saved = load_table(table_cache_path(cache, calibration, 1.0))
-    assert len(saved.normalisation_keys) == MAX_NORMALISATIONS
-    assert saved.normalisation_keys == table.normalisation_keys
+    cache = Cache(directory=tmp_path / "cache")
+    for n in (5, 6, 7):
+        process(exposure, calibration, PipelineParams(n_slices=n, refine=False), cache=cache)
+    table = get_table(calibration, cache)
+    fresh = Cache()
+    saved = load_table(table_cache_path(cache.directory, calibration, 1.0), cache=fresh)
+    assert len(normalisation_keys(table, cache)) == 4   # three stacks and the sub-aperture image
+    assert normalisation_keys(saved, fresh) == normalisation_keys(table, cache)
 
 
 def test_depth_prior_beats_what_the_pixels_alone_allow(tmp_path):
@@ -194,8 +196,8 @@ def test_depth_prior_beats_what_the_pixels_alone_allow(tmp_path):
     c = simulated_case(tmp_path, "tilted-layer", 3, size=1200)
     count, floor = depth_floor(c.truth, c.exposure.model.lattice, nn_mm=c.nn_mm)
     assert count >= 3 and floor > 0.03  # this crop holds several such particles
-    with_prior = score(process(c.exposure, c.calibration, cache_dir=c.cache).particles, c.truth, nn_mm=c.nn_mm)
-    alone = score(process(c.exposure, c.calibration, PipelineParams(depth_prior=False), cache_dir=c.cache).particles,
+    with_prior = score(process(c.exposure, c.calibration, cache=c.cache).particles, c.truth, nn_mm=c.nn_mm)
+    alone = score(process(c.exposure, c.calibration, PipelineParams(depth_prior=False), cache=c.cache).particles,
                   c.truth, nn_mm=c.nn_mm)
     assert with_prior.recall == alone.recall == 1.0
     assert with_prior.depth_abs_rms_over_nn < 0.5 * floor
@@ -205,7 +207,7 @@ def test_depth_prior_beats_what_the_pixels_alone_allow(tmp_path):
 def test_finer_output_grid_finds_the_same_particles(layer, layer_result):
     """Two output pixels per lens: coordinates in the finer grid's pixels, same particles in mm."""
     _, exposure, calibration, truth, nn, cache = layer
-    fine = process(exposure, calibration, PipelineParams(grid_oversample=2.0), cache_dir=cache)
+    fine = process(exposure, calibration, PipelineParams(grid_oversample=2.0), cache=cache)
     assert fine.grid.width > 1.8 * layer_result.grid.width
     s = score(fine.particles, truth, nn_mm=nn)
     assert s.recall >= 0.9 and s.precision >= 0.9

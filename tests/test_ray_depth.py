@@ -7,19 +7,28 @@ import dataclasses
 import numpy as np
 import pytest
 
-from analysis.calibration.calibrate import load_calibration
+from analysis.calibration.cache import load_calibration
 from analysis.camera.model import CameraModel
 from analysis.formats.exposure import read_exposure
 from analysis.lightfield.table import build_table_from_model
 from analysis.formats.particle_table import read_csv
-from analysis.pipeline.process import FIT_TABLE_RIM_PX, get_table
-from analysis.depth.rayfit import (_gather, _grid_costs, _index, _lit_fraction, _pixel_footprint, _uv,
-    _weight, aperture_per_lens_plane, fit_rays)
+from analysis.pipeline.tables import FIT_TABLE_RIM_PX, get_table
+from analysis.cache import Cache
+from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, pixel_footprint
+from analysis.depth.rayfit_kernels import GridPass, grid_costs
+from analysis.depth.render_kernels import lit_fraction
+from analysis.depth.refine import COARSE_TEMPERATURE
+from analysis.depth.table_index import TableIndex
 from analysis.lightfield.refocus import select_samples
 from analysis.simulation.scenarios import Particles
 from analysis.simulation.camera import simulated_camera_metadata
 from analysis.simulation.render import render_exposure, white_coverage, write_scenario
 from simulated_case import mean_nn_mm
+
+
+# fit_rays' default coarse pass with 17 depths, and the pipeline's (its defaults' 5 positions per side).
+COARSE = FitGrid(depths=17, lateral_pitches=0.4, positions=3, pixel_points=1, temperature=COARSE_TEMPERATURE)
+PIPELINE_COARSE = COARSE._replace(positions=5)
 
 
 @pytest.fixture(scope="module")
@@ -28,12 +37,13 @@ def scene(tmp_path_factory):
     write_scenario(folder, "tilted-layer", 7, size=1200)
     exposure = read_exposure(folder / "IMG_0001.lfp")
     calibration = load_calibration(folder / "calibration", exposure.metadata, serial=exposure.serial)
-    table = get_table(calibration, rim_px=FIT_TABLE_RIM_PX)
+    cache = Cache()
+    table = get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
     truth = read_csv(folder / "IMG_0001.truth.csv")
     nn = mean_nn_mm(folder)
     p_m = exposure.model.optics.exit_pupil_m
     s_hat = np.column_stack([truth["X"], truth["Y"]]) * p_m / truth["Z"][:, None]  # metres, shared magnification
-    noise = select_samples(exposure.image, get_table(calibration))
+    noise = select_samples(exposure.image, get_table(calibration, cache))
     return exposure, calibration, table, truth, nn, s_hat, noise
 
 
@@ -109,7 +119,7 @@ def test_fit_tells_in_front_of_focus_from_behind(blur, offset):
         image = render_exposure(model, one, seed=3)
         # Start at focus: the brightness of a refocused stack cannot tell the two signs apart.
         fit = fit_rays(image, table, s_hat[:1], s_hat[1:], np.ones(1), background=0.0,
-                       aperture_per_lens_plane=aperture_per_lens_plane(optics), n_alpha=17)
+                       aperture_per_lens_plane=aperture_per_lens_plane(optics), coarse=COARSE)
         c_fit = 1.0 - 1.0 / fit.alpha[0]
         # Averaging the two signs' minima gives about 0; the sign and most of the size must come back.
         assert c_fit / c > 0.5, (sign, c_fit, c)
@@ -155,8 +165,9 @@ def test_refit_with_neighbours_light_taken_off_keeps_isolated_particles(scene):
     assert np.median(gone.intensity) < 0.3 * np.median(first.intensity)
 
 
-def _reference_costs(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_lat, n_lat, pitch, normals,
-                     half_sq, neigh_u, neigh_s, sub, r_ap2):
+def _reference_costs(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, grid, cells):
+    n_c, half_lat, n_lat, sub = grid.n_depths, grid.half_lateral, grid.n_lateral, grid.footprint
+    pitch, r_ap2 = cells.pitch, cells.r_ap2
     costs = []
     sum_v2 = float(np.sum(values[ptr[0]:ptr[-1]] ** 2))
     for ic in range(n_c):
@@ -171,8 +182,7 @@ def _reference_costs(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, n_c, half_l
                     if np.hypot(centres[lens, 0] - sx, centres[lens, 1] - sy) > reach:
                         continue
                     for j in range(ptr[lens], ptr[lens + 1]):
-                        f = _lit_fraction(uv[j, 0], uv[j, 1], centres[lens, 0], centres[lens, 1], sx, sy, c, normals,
-                                          half_sq, neigh_u, neigh_s, sub, r_ap2)
+                        f = lit_fraction(uv[j, 0], uv[j, 1], centres[lens, 0], centres[lens, 1], sx, sy, c, cells, sub)
                         if f > 0.0:
                             s_vf += values[j] * f
                             s_ff += f * f
@@ -185,7 +195,7 @@ def test_grid_costs_match_the_model_one_candidate_at_a_time(blur, points):
     model = CameraModel.from_metadata(simulated_camera_metadata(size=480))
     optics = model.optics
     table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
-    idx = _index(table)
+    idx = TableIndex(table)
     s_hat = 0.13 * table.basis_m[:, 0] + 0.07 * table.basis_m[:, 1]
     c = blur * optics.lens_pitch_m / optics.aperture_diameter_m
     z = float(optics.z_of_alpha(1.0 / (1.0 - c)))
@@ -196,18 +206,16 @@ def test_grid_costs_match_the_model_one_candidate_at_a_time(blur, points):
     sx0, sy0 = s_hat[0] + 0.1 * idx.pitch_m, s_hat[1] - 0.05 * idx.pitch_m
     c_lo, c_hi = c - 0.3 * abs(c) - 5e-4, c + 0.25 * abs(c) + 5e-4  # blur +-30 % and +-0.3 pitch
     reach = max(abs(c_lo), abs(c_hi)) * idx.radius_m + 1.6 * idx.pitch_m
-    lens_ptr, sample_ptr, ids, centres = _gather(idx, np.array([sx0]), np.array([sy0]), np.array([reach]))
+    g = idx.gather(np.array([sx0]), np.array([sy0]), np.array([reach]))
     flat = image.reshape(-1)
-    values = (flat[table.pixel_index[ids]].astype(np.float64) - table.black_level) / _weight(table, ids)
+    values = (flat[table.pixel_index[g.ids]].astype(np.float64) - table.black_level) / idx.weight(g.ids)
     values -= np.median(values)  # the background: most gathered samples see none of the particle
-    uv = _uv(table, ids)
-    ratio = aperture_per_lens_plane(optics)
-    args = (centres, sample_ptr, uv, values, sx0, sy0, c_lo, c_hi, 4, 0.3 * idx.pitch_m, 3, idx.pitch_m,
-            idx.normals, idx.half_sq, idx.neighbours * ratio, idx.neighbours,
-            _pixel_footprint(points, 0.5) * idx.u_per_px, table.aperture_radius_m ** 2 * (1 + 1e-9))
+    uv = idx.uv(g.ids)
+    grid = GridPass(4, 0.3 * idx.pitch_m, 3, pixel_footprint(points, 0.5) * idx.u_per_px, 1.0)
+    args = (g.centres, g.sample_ptr, uv, values, sx0, sy0, c_lo, c_hi, grid, idx.cells(aperture_per_lens_plane(optics)))
     n = 4 * 3 * 3
-    costs, cand, inten, lit = np.empty(n), np.empty((n, 3)), np.empty(n), np.empty(n)
-    _grid_costs(*args, costs, cand, inten, lit)
+    _, costs, _, _, _ = grid_costs(*args)
+    assert costs.size == n
     expected = _reference_costs(*args)
     sum_v2 = float(np.sum(values**2))
     # Most candidates put light on the particle's pixels, some explain them well (the comparison
@@ -220,23 +228,24 @@ def test_grid_costs_match_the_model_one_candidate_at_a_time(blur, points):
 def test_deblending_drops_a_particle_seen_twice(scene):
     """A second fit of one particle's light is left with nothing of its own once the first is refitted."""
     from analysis.detection.curves import Peaks
-    from analysis.depth.refine import RayFitter, concat_fits, deblend, take_fit
+    from analysis.depth.deblend import deblend
+    from analysis.depth.refine import RayFitter
 
     exposure, calibration, table, truth, nn, s_hat, noise = scene
     ratio = aperture_per_lens_plane(calibration.model.optics)
     first = fit_rays(exposure.image, table, s_hat[:, 0], s_hat[:, 1], truth["alpha"], background=noise.background,
                      aperture_per_lens_plane=ratio)
-    twice = take_fit(first, np.array([0]))
+    twice = first.take(np.array([0]))
     pitch = float(np.hypot(*table.basis_m[:, 0]))
     twice = dataclasses.replace(twice, sx_m=twice.sx_m + 0.3 * pitch, alpha=twice.alpha + 0.0015)
-    fits = concat_fits(first, twice)
+    fits = RayFit.concat(first, twice)
     grid = table.grid
     x, y = grid.to_pixels(fits.sx_m, fits.sy_m)
     n = len(fits)
     peaks = Peaks(track=np.arange(n), alpha=fits.alpha, x=np.asarray(x, float), y=np.asarray(y, float),
                   peak_height=np.ones(n), peak_width=np.ones(n), residual=fits.residual, prominence=np.ones(n))
     fitter = RayFitter(exposure.image, table, grid, background=noise.background, aperture_per_lens_plane=ratio,
-                       alpha_half_range=0.004, fit_depths=17, fit_lateral=5, min_intensity=8 * noise.sigma,
+                       alpha_half_range=0.004, coarse=PIPELINE_COARSE, min_intensity=8 * noise.sigma,
                        max_residual=0.35, merge_radius_px=1.5, merge_alpha=0.0026)
     kept, fit = deblend(fitter, peaks, fits)
     assert len(kept) == len(first)  # the copy is gone, every particle stays
@@ -263,7 +272,7 @@ def _one_fit(model, table, s_hat, image, alpha0):
     ratio = aperture_per_lens_plane(model.optics)
     background = float(np.median((image.astype(float) - table.black_level)))
     fitter = RayFitter(image, table, table.grid, background=background, aperture_per_lens_plane=ratio,
-                       alpha_half_range=0.004, fit_depths=17, fit_lateral=5, min_intensity=100.0,
+                       alpha_half_range=0.004, coarse=PIPELINE_COARSE, min_intensity=100.0,
                        max_residual=0.35, merge_radius_px=1.5, merge_alpha=0.0026)
     fit = fitter.fit(np.array([s_hat[0]]), np.array([s_hat[1]]), np.array([alpha0]))
     x, y = table.grid.to_pixels(fit.sx_m, fit.sy_m)
@@ -274,7 +283,7 @@ def _one_fit(model, table, s_hat, image, alpha0):
 
 
 def test_a_fit_holding_two_particles_on_one_line_of_sight_is_split():
-    from analysis.depth.refine import split_shared
+    from analysis.depth.deblend import split_shared
 
     truth = np.array([0.99810, 1.00297])  # a pair one fit took for one particle (shadowing seed 5)
     model, table, s_hat, image = _line_of_sight_scene(truth, [1985.0, 1900.0])
@@ -287,7 +296,7 @@ def test_a_fit_holding_two_particles_on_one_line_of_sight_is_split():
 
 
 def test_a_single_particle_is_not_split():
-    from analysis.depth.refine import split_shared
+    from analysis.depth.deblend import split_shared
 
     model, table, s_hat, image = _line_of_sight_scene([1.0028], [2600.0])
     fitter, peaks, fit = _one_fit(model, table, s_hat, image, 1.0028)
@@ -300,7 +309,7 @@ def test_depth_scale_of_blurred_particles_is_unbiased():
     each lens holds (the lens cell seen through the aperture, scaled by 1/c): a pixel model that
     spreads light wider or narrower than the sensor does scales every such depth. On noise-free
     particles, evenly spaced pixel points put them 1.1 % too far from focus."""
-    from analysis.depth.refine import FINE_GRID, FINE_TEMPERATURE
+    from analysis.depth.refine import FINE_GRID
     from analysis.simulation.scenarios import Particles
     from analysis.simulation.render import particle_truth
 
@@ -318,8 +327,7 @@ def test_depth_scale_of_blurred_particles_is_unbiased():
     assert np.allclose(particle_truth(model, particles).blur_pitches, np.abs(blur), rtol=1e-3)
     image = render_exposure(model, particles, seed=5, noise=False)
     fit = fit_rays(image, table, s_hat[:, 0], s_hat[:, 1], 1.0 / (1.0 - c), background=0.0,
-                   aperture_per_lens_plane=aperture_per_lens_plane(optics), fine=FINE_GRID,
-                   temperature=FINE_TEMPERATURE)  # as the pipeline fits them
+                   aperture_per_lens_plane=aperture_per_lens_plane(optics), fine=FINE_GRID)  # as the pipeline does
     ratio = (1.0 - 1.0 / fit.alpha) / c
     assert np.all(np.abs(ratio - 1.0) < 0.03), ratio  # single fits scatter with the grid's depth step
     assert abs(np.mean(ratio) - 1.0) < 0.005, ratio  # evenly spaced pixel points: 0.011

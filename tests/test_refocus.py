@@ -11,7 +11,8 @@ from analysis.lightfield.reference import refocus_reference
 from analysis.camera.model import CameraModel
 from analysis.errors import ParameterError
 from analysis.lightfield.table import build_table_from_model, load_table, save_table
-from analysis.lightfield.refocus import (MAX_NORMALISATIONS, _gaussian_blur, alphas_for_depth_range,
+from analysis.cache import Cache
+from analysis.lightfield.refocus import (_gaussian_blur, alphas_for_depth_range,
     default_alphas, normalisation, prepare_normalisations, products, refocus_stack, select_samples,
     subaperture_image)
 from analysis.simulation.scenarios import Particles
@@ -185,14 +186,19 @@ def test_empty_frame_gives_zeros(model, table, method):
 
 def test_normalisation_is_cached_per_alphas_and_bounded(model):
     table = build_table_from_model(model)
-    a = normalisation(table, default_alphas(4))
-    assert normalisation(table, default_alphas(4)) is a
-    assert normalisation(table, default_alphas(5)) is not a
-    for n in range(6, 6 + MAX_NORMALISATIONS):
-        normalisation(table, default_alphas(4))          # kept: used most recently
-        normalisation(table, default_alphas(n))
-    assert len(table._normalisations) == MAX_NORMALISATIONS
-    assert normalisation(table, default_alphas(4)) is a
+    cache = Cache()
+    a = normalisation(table, default_alphas(4), cache=cache)
+    assert normalisation(table, default_alphas(4), cache=cache) is a
+    assert normalisation(table, default_alphas(5), cache=cache) is not a
+    # A budget of 8 times the first: the least recently used go first.
+    cache.max_bytes = 8 * a.nbytes
+    for n in range(6, 12):
+        normalisation(table, default_alphas(4), cache=cache)          # kept: used most recently
+        normalisation(table, default_alphas(n), cache=cache)
+    kept = len(list(cache.entries("normalisation", table.uid)))
+    assert cache.nbytes <= cache.max_bytes and 2 <= kept < 7         # 8 made, the oldest dropped
+    assert normalisation(table, default_alphas(4), cache=cache) is a
+    assert normalisation(table, default_alphas(4)) is not a             # no cache: worked out afresh
 
 
 def test_out_argument_and_finer_grid(model, table):
@@ -258,13 +264,16 @@ def test_diffuse_glow_is_estimated_and_removed(model):
 def test_prepared_normalisations_travel_with_the_saved_table(tmp_path, model):
     table = build_table_from_model(model)
     alphas = default_alphas(6)
-    prepare_normalisations(table, alphas, fraction=0.25)
-    back = load_table(save_table(table, tmp_path / "lot.npz"))
-    assert len(back._normalisations) == 2
+    cache = Cache()
+    prepare_normalisations(table, alphas, fraction=0.25, cache=cache)
+    fresh = Cache()
+    back = load_table(save_table(table, tmp_path / "lot.npz", cache=cache), cache=fresh)
+    assert back.uid == table.uid and len(fresh) == 2
     image = point_source_exposure(model, 1.004, (0.0, 0.0))
-    assert np.array_equal(refocus_stack(image, back, alphas), refocus_stack(image, table, alphas))
-    assert np.array_equal(subaperture_image(image, back, fraction=0.25), subaperture_image(image, table, fraction=0.25))
-    assert len(back._normalisations) == 2   # nothing recomputed
+    assert np.array_equal(refocus_stack(image, back, alphas, cache=fresh), refocus_stack(image, table, alphas))
+    assert np.array_equal(subaperture_image(image, back, fraction=0.25, cache=fresh),
+                          subaperture_image(image, table, fraction=0.25))
+    assert len(list(fresh.entries("normalisation", back.uid))) == 2   # nothing recomputed
 
 
 def test_simulated_particles_are_sharp_at_their_true_alpha_and_place(model):

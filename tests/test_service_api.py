@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from analysis.calibration.calibrate import load_calibration
+from analysis.calibration.cache import load_calibration
 from analysis.formats.exposure import read_exposure
 from analysis.pipeline.process import process
 from driver import open_simulated

@@ -16,8 +16,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 from itertools import combinations
 
+import logging
+
 import numpy as np
 from scipy.spatial import cKDTree
+
+from analysis.detection.curves import Peaks
+
+from .rayfit import RayFit
+from .refine import RayFitter, replace_fits
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -123,3 +132,21 @@ def _best_triple_plane(design: np.ndarray, target: np.ndarray, var: np.ndarray) 
     spread = np.where(z2 <= 9.0, z2, 0.0).sum(axis=2)
     best = np.lexsort((spread, -votes), axis=-1)[:, 0] if n else np.zeros(0, np.int64)
     return planes[np.arange(n), best]
+
+
+def apply_depth_prior(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit]:
+    """Refit the particles whose pixels leave the depth open, with their neighbours' surface as prior.
+
+    Only where the prior is narrower than the spread the pixels allow
+    (:func:`analysis.depth.prior.neighbour_prior`); the others keep their fit.
+    """
+    prior = neighbour_prior(peaks.x, peaks.y, fit.alpha, fit.alpha_spread)
+    todo = np.flatnonzero(np.isfinite(prior.sigma) & (fit.alpha_spread > prior.sigma))
+    log.debug("depth prior: %d of %d particles refitted", todo.size, len(peaks))
+    if todo.size == 0:
+        return peaks, fit
+    sub = fit.take(todo)
+    new = fitter.fit(sub.sx_m, sub.sy_m, sub.alpha, subtract=fitter.render(fit), own=sub,
+                     prior_alpha=prior.alpha[todo], prior_sigma=prior.sigma[todo])
+    ok = np.flatnonzero(new.intensity > 0)
+    return replace_fits(fitter.grid, peaks, fit, todo[ok], new.take(ok))

@@ -75,7 +75,13 @@ class Peaks:
         return int(self.alpha.shape[0])
 
     def take(self, index: np.ndarray) -> "Peaks":
+        """The peaks at ``index`` (integer array or mask)."""
         return Peaks(**{name: getattr(self, name)[index] for name in self.__dataclass_fields__})
+
+    @staticmethod
+    def concat(*peaks: "Peaks") -> "Peaks":
+        """The peaks one after the other."""
+        return Peaks(**{name: np.concatenate([getattr(p, name) for p in peaks]) for name in Peaks.__dataclass_fields__})
 
 
 def link_tracks(detections: Sequence[Detections], *, radius_px: float = 1.5, max_gap: int = 1) -> Tracks:
@@ -333,11 +339,12 @@ def merge_duplicates(peaks: Peaks, *, radius_px: float = 1.5, alpha_tolerance: f
 
 
 def unique_indices(peaks: Peaks, *, radius_px: float, alpha_tolerance: float,
-                   priority: np.ndarray | None = None) -> np.ndarray:
+                   priority: np.ndarray | None = None, settled: int = 0) -> np.ndarray:
     """Indices of the peaks to keep when near-duplicates are merged, in their original order.
 
     Of peaks within ``radius_px`` (image) and ``alpha_tolerance`` (alpha) of each other, the one
-    with the highest ``priority`` (default ``peak_height``) is kept.
+    with the highest ``priority`` (default ``peak_height``) is kept; the first ``settled`` peaks
+    (particles already accepted) win over the others whatever their priority.
     """
     n = len(peaks)
     if n < 2:
@@ -345,7 +352,8 @@ def unique_indices(peaks: Peaks, *, radius_px: float, alpha_tolerance: float,
     priority = peaks.peak_height if priority is None else np.asarray(priority)
     tree = cKDTree(np.column_stack([peaks.x, peaks.y]))
     removed = np.zeros(n, dtype=bool)
-    for i in np.argsort(-priority, kind="stable"):
+    newcomer = np.arange(n) >= settled
+    for i in np.lexsort((-priority, newcomer)):
         if removed[i]:
             continue
         for j in tree.query_ball_point([peaks.x[i], peaks.y[i]], r=radius_px):

@@ -17,7 +17,7 @@ from .atomic_write import atomic_path
 from analysis.errors import ParameterError
 
 if TYPE_CHECKING:
-    from analysis.pipeline.process import Result
+    from analysis.pipeline.result import Result
 
 #: Columns of the particle table, in this order.
 COLUMNS: tuple[str, ...] = ("particle", "x", "y", "alpha", "X", "Y", "Z", "brightness",

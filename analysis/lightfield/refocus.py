@@ -39,7 +39,8 @@ in accuracy anyway (same script), since the look-up table knows which lens a ray
 where in it: a focused particle is a blob one lens wide.
 
 The normalisation depends only on the table, method, grid and alphas; it is computed once (all
-samples, about a second full size) and kept in the table, and
+samples, about a second full size) and kept in the caller's :class:`analysis.cache.Cache` (pass
+the same one to every call; without one, each call works it out afresh), and
 :func:`analysis.lightfield.table.save_table` stores it with the table.
 """
 
@@ -50,19 +51,18 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from analysis.cache import Cache
 from . import kernels as kern
 from analysis.camera.model import Optics
 from analysis.errors import ParameterError
 from analysis.camera.image_grid import ImageGrid
-from .table import LightFieldTable
+from .table import NORMALISATION, LightFieldTable
 
 __all__ = ["ImageGrid", "Samples", "default_alphas", "alphas_for_depth_range", "select_samples",
            "refocus_stack", "subaperture_image", "products", "normalisation", "prepare_normalisations"]
 
 DEFAULT_MIN_COVERAGE = 0.25
 METHODS = ("auto", "bilinear", "triangles")
-# Normalisations kept per table (least recently used dropped first).
-MAX_NORMALISATIONS = 6
 DEFAULT_METHOD = "auto"
 # Below this many DN the noise estimate is taken as quantisation-limited.
 _MIN_SIGMA_DN = 0.5
@@ -240,33 +240,36 @@ def _grid_key(grid: ImageGrid) -> bytes:
     return np.array([grid.width, grid.height, grid.x0_m, grid.y0_m, grid.step_m], dtype=np.float64).tobytes()
 
 
-def _targets(table: LightFieldTable, method: str, grid: ImageGrid) -> tuple[np.ndarray, float, int]:
+def _lens_pixels(table: LightFieldTable, grid: ImageGrid, cache: Cache) -> np.ndarray:
+    """Each lens centre's output-grid position ``(col, row)``, float32 (L, 2)."""
+    def make() -> np.ndarray:
+        col, row = grid.to_pixels(table.lens_xy_m[:, 0], table.lens_xy_m[:, 1])
+        return np.stack([col, row], axis=1).astype(np.float32)
+    return cache.get_or_make(("refocus", table.uid, "lens_px", _grid_key(grid)), make)
+
+
+def _targets(table: LightFieldTable, method: str, grid: ImageGrid, cache: Cache) -> tuple[np.ndarray, float, int]:
     """Per-lens target row (site row, or output-grid row), row shift per unit coefficient, and
     the number of target cells of a method."""
     if method == "triangles":
         n_rows, n_cols = table.site_shape
         return table.lens_site[:, 1], table.max_row_shift, n_rows * n_cols
-    key = ("lens_px", _grid_key(grid))
-    lens_px = table._scratch.get(key)
-    if lens_px is None:
-        col, row = grid.to_pixels(table.lens_xy_m[:, 0], table.lens_xy_m[:, 1])
-        lens_px = np.stack([col, row], axis=1).astype(np.float32)
-        table._scratch[key] = lens_px
-    return lens_px[:, 1], table.max_abs_v_m / grid.step_m, grid.height * grid.width
+    return _lens_pixels(table, grid, cache)[:, 1], table.max_abs_v_m / grid.step_m, grid.height * grid.width
 
 
 def _band_starts(table: LightFieldTable, ids: np.ndarray, coeffs: np.ndarray, method: str,
-                 grid: ImageGrid) -> np.ndarray:
+                 grid: ImageGrid, cache: Cache) -> np.ndarray:
     """Cut samples (ordered by lens row) into bands of lens rows that threads may splat in turn.
 
     Band ``b`` writes target rows from its lenses' lowest row minus ``reach`` to their highest
     plus ``reach + 1``; bands are made tall enough that bands two apart never meet (see the
     kernels), and about 8 per thread so that clustered particles still share out.
     """
-    target_row, shift_per_coeff, _ = _targets(table, method, grid)
+    target_row, shift_per_coeff, _ = _targets(table, method, grid, cache)
     reach = int(np.ceil(shift_per_coeff * float(np.abs(coeffs).max()))) + 1
-    key = ("bands", method, _grid_key(grid) if method == "bilinear" else b"", reach, numba.get_num_threads())
-    edges = table._scratch.get(key)
+    key = ("refocus", table.uid, "bands", method, _grid_key(grid) if method == "bilinear" else b"", reach,
+           numba.get_num_threads())
+    edges = cache.get(key)
     if edges is None:
         lens_row = table.lens_site[:, 1].astype(np.int64)
         n_lens_rows = int(lens_row.max()) + 1
@@ -287,29 +290,29 @@ def _band_starts(table: LightFieldTable, ids: np.ndarray, coeffs: np.ndarray, me
             if w_lo.size < 3 or np.all(w_hi[:-2] < w_lo[2:] - 1):
                 break
             rows += 1
-        table._scratch[key] = edges
+        cache.put(key, edges)
     sample_rows = table.lens_site[table.lens[ids], 1] if ids.size else np.zeros(0, np.float32)
     return np.searchsorted(sample_rows, edges.astype(np.float32), side="left").astype(np.int64)
 
 
 def _refocus_into(table: LightFieldTable, ids: np.ndarray, values: np.ndarray, coeffs: np.ndarray, method: str,
-                  grid: ImageGrid, scale: np.ndarray | None, out: np.ndarray) -> np.ndarray:
+                  grid: ImageGrid, scale: np.ndarray | None, out: np.ndarray, cache: Cache) -> np.ndarray:
     """Splat samples and write the slices (n_alpha, height, width) into ``out``.
 
     ``scale`` is the normalisation (see :func:`normalisation`); ``None`` leaves the raw sums,
     in the method's own layout (bilinear: ``out`` itself; triangles: returned site sums).
     """
-    bands = _band_starts(table, ids, coeffs, method, grid)
+    bands = _band_starts(table, ids, coeffs, method, grid, cache)
     if method == "bilinear":
-        lens_px = table._scratch[("lens_px", _grid_key(grid))]
+        lens_px = _lens_pixels(table, grid, cache)
         kern.splat_bilinear(ids, values, table.lens, lens_px, table.u_m, table.v_m, 1.0 / grid.step_m,
                             coeffs, bands, out)
         if scale is not None:
             kern.scale_slices(out, scale)
         return out
     n_rows, n_cols = table.site_shape
-    key = ("acc", n_rows * n_cols, coeffs.size)
-    acc = table._scratch.pop(key, None)   # pop: a concurrent caller allocates its own
+    key = ("refocus", table.uid, "acc", n_rows * n_cols, coeffs.size)
+    acc = cache.take(key)                 # taken: a concurrent caller allocates its own
     if acc is None:
         acc = np.empty((n_rows * n_cols, coeffs.size), dtype=np.float32)
     kern.splat(ids, values, table.lens, table.lens_site, table.u_m, table.v_m, table.inverse_basis_m,
@@ -323,7 +326,7 @@ def _refocus_into(table: LightFieldTable, ids: np.ndarray, values: np.ndarray, c
     d_col = inv_b @ np.array([grid.step_m, 0.0])
     d_row = inv_b @ np.array([0.0, grid.step_m])
     kern.interpolate_to_grid(acc, scale, n_cols, n_rows, table.site_col_offset, origin, d_col, d_row, out)
-    table._scratch[key] = acc
+    cache.put(key, acc)
     return out
 
 
@@ -339,11 +342,11 @@ def _resolve_method(method: str, table: LightFieldTable, grid: ImageGrid) -> str
 
 def normalisation(table: LightFieldTable, alphas: np.ndarray, *, method: str = DEFAULT_METHOD,
                   grid: ImageGrid | None = None, keep: np.ndarray | None = None, key_extra: bytes = b"",
-                  min_coverage: float = DEFAULT_MIN_COVERAGE) -> np.ndarray:
+                  min_coverage: float = DEFAULT_MIN_COVERAGE, cache: Cache | None = None) -> np.ndarray:
     """Inverse of the light each lens site (or output pixel) can receive at each alpha.
 
     Computed once per table, method, grid and alphas (all samples, about a second full size)
-    and cached in the table (:func:`analysis.lightfield.table.save_table` keeps it).
+    and kept in ``cache`` (:func:`analysis.lightfield.table.save_table` writes it with the table).
 
     Returns
     -------
@@ -353,21 +356,21 @@ def normalisation(table: LightFieldTable, alphas: np.ndarray, *, method: str = D
         (n_alpha, grid.height, grid.width) for "bilinear", (n_sites, n_alpha) for "triangles".
     """
     grid = table.grid if grid is None else grid
+    cache = Cache() if cache is None else cache
     method = _resolve_method(method, table, grid)
     coeffs = _coeffs(alphas)
-    key = (coeffs.tobytes() + np.float32(min_coverage).tobytes() + key_extra + method.encode()
-           + (_grid_key(grid) if method == "bilinear" else b""))
-    cached = table._normalisations.pop(key, None)
+    key = (NORMALISATION, table.uid, coeffs.tobytes() + np.float32(min_coverage).tobytes() + key_extra
+           + method.encode() + (_grid_key(grid) if method == "bilinear" else b""))
+    cached = cache.get(key)
     if cached is not None:
-        table._normalisations[key] = cached      # most recently used last
         return cached
     ids = np.arange(table.n_samples, dtype=np.int32) if keep is None else np.flatnonzero(keep).astype(np.int32)
     if method == "bilinear":
         den = np.empty((coeffs.size, grid.height, grid.width), dtype=np.float32)
-        _refocus_into(table, ids, table.weight[ids], coeffs, method, grid, None, den)
+        _refocus_into(table, ids, table.weight[ids], coeffs, method, grid, None, den, cache)
         per_alpha = den.reshape(coeffs.size, -1)          # one row per alpha
     else:
-        den = _refocus_into(table, ids, table.weight[ids], coeffs, method, grid, None, None)
+        den = _refocus_into(table, ids, table.weight[ids], coeffs, method, grid, None, None, cache)
         per_alpha = den.T                                 # view: one row per alpha
     inv = np.zeros_like(den)
     inv_per_alpha = inv.reshape(coeffs.size, -1) if method == "bilinear" else inv.T
@@ -378,38 +381,35 @@ def normalisation(table: LightFieldTable, alphas: np.ndarray, *, method: str = D
             continue
         enough = d >= min_coverage * float(np.median(positive))
         inv_per_alpha[a, enough] = 1.0 / d[enough]
-    # A service asked for many alpha ranges must not grow without bound (about 20 MB each).
-    while len(table._normalisations) >= MAX_NORMALISATIONS:
-        table._normalisations.pop(next(iter(table._normalisations)))
-    table._normalisations[key] = inv
-    return inv
+    return cache.put(key, inv)
 
 
-def prepare_normalisations(table: LightFieldTable, alphas: np.ndarray | None = None, *,
+def prepare_normalisations(table: LightFieldTable, alphas: np.ndarray | None = None, *, cache: Cache,
                            fraction: float = 0.3, method: str = DEFAULT_METHOD, grid: ImageGrid | None = None,
                            min_coverage: float = DEFAULT_MIN_COVERAGE) -> None:
-    """Compute the normalisations of the stack (``alphas``) and the sub-aperture image (``fraction``).
+    """Compute the normalisations of the stack (``alphas``) and the sub-aperture image (``fraction``)
+    into ``cache``.
 
     About a second full size, once per table and settings; call it before
-    :func:`analysis.lightfield.table.save_table` so the cached table carries them and a fresh process
+    :func:`analysis.lightfield.table.save_table` so the saved table carries them and a fresh process
     refocuses at full speed from its first exposure.
     """
     normalisation(table, default_alphas() if alphas is None else alphas, method=method, grid=grid,
-                  min_coverage=min_coverage)
-    _sub_normalisation(table, fraction, method, table.grid if grid is None else grid, min_coverage)
+                  min_coverage=min_coverage, cache=cache)
+    _sub_normalisation(table, fraction, method, table.grid if grid is None else grid, min_coverage, cache)
 
 
 def _sub_normalisation(table: LightFieldTable, fraction: float, method: str, grid: ImageGrid,
-                       min_coverage: float) -> np.ndarray:
-    return normalisation(table, np.ones(1), method=method, grid=grid, keep=_central_samples(table, fraction),
-                         key_extra=b"sub" + np.float64(fraction).tobytes(), min_coverage=min_coverage)
+                       min_coverage: float, cache: Cache) -> np.ndarray:
+    return normalisation(table, np.ones(1), method=method, grid=grid, keep=_central_samples(table, fraction, cache),
+                         key_extra=b"sub" + np.float64(fraction).tobytes(), min_coverage=min_coverage, cache=cache)
 
 
 def refocus_stack(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray | None = None, *,
                   grid: ImageGrid | None = None, method: str = DEFAULT_METHOD, black_level: float | None = None,
                   background: float | None = None, noise_sigmas: float | None = 3.0,
                   min_coverage: float = DEFAULT_MIN_COVERAGE, samples: Samples | None = None,
-                  out: np.ndarray | None = None) -> np.ndarray:
+                  out: np.ndarray | None = None, cache: Cache | None = None) -> np.ndarray:
     """Refocused images ``E_alpha`` of one raw exposure, one per alpha.
 
     Parameters
@@ -436,6 +436,8 @@ def refocus_stack(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray 
         A selection from :func:`select_samples`, to share it with :func:`subaperture_image`.
     out : ndarray of shape (A, grid.height, grid.width), float32, optional
         Where to write the stack.
+    cache : Cache, optional
+        Keeps the normalisation and work buffers between calls (see the module docstring).
 
     Returns
     -------
@@ -471,15 +473,16 @@ def refocus_stack(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray 
     if samples is None:
         samples = select_samples(image, table, black_level=black_level, background=background,
                                  noise_sigmas=noise_sigmas)
-    inv = normalisation(table, alphas, method=method, grid=grid, min_coverage=min_coverage)
-    return _refocus_into(table, samples.ids, samples.values, coeffs, method, grid, inv, out)
+    cache = Cache() if cache is None else cache
+    inv = normalisation(table, alphas, method=method, grid=grid, min_coverage=min_coverage, cache=cache)
+    return _refocus_into(table, samples.ids, samples.values, coeffs, method, grid, inv, out, cache)
 
 
 def subaperture_image(image: np.ndarray, table: LightFieldTable, *, fraction: float = 0.3,
                       blur_sigma_px: float = 1.0, grid: ImageGrid | None = None, method: str = DEFAULT_METHOD,
                       black_level: float | None = None, background: float | None = None,
                       noise_sigmas: float | None = 3.0, min_coverage: float = DEFAULT_MIN_COVERAGE,
-                      samples: Samples | None = None) -> np.ndarray:
+                      samples: Samples | None = None, cache: Cache | None = None) -> np.ndarray:
     """Image through the central ``fraction`` of the aperture (digital stopping-down), blurred.
 
     Only samples with ``|(u, v)| <= fraction * aperture_radius_m`` contribute, unshifted
@@ -497,7 +500,7 @@ def subaperture_image(image: np.ndarray, table: LightFieldTable, *, fraction: fl
         Radius of the aperture part used, as a fraction of the aperture radius (0, 1].
     blur_sigma_px : float
         Gaussian blur in output pixels (0: none).
-    grid, method, black_level, background, noise_sigmas, min_coverage, samples
+    grid, method, black_level, background, noise_sigmas, min_coverage, samples, cache
         As in :func:`refocus_stack`.
 
     Returns
@@ -518,12 +521,13 @@ def subaperture_image(image: np.ndarray, table: LightFieldTable, *, fraction: fl
         samples = select_samples(image, table, black_level=black_level, background=background,
                                  noise_sigmas=noise_sigmas)
     method = _resolve_method(method, table, grid)
-    central = _central_samples(table, fraction)
-    inv = _sub_normalisation(table, fraction, method, grid, min_coverage)
+    cache = Cache() if cache is None else cache
+    central = _central_samples(table, fraction, cache)
+    inv = _sub_normalisation(table, fraction, method, grid, min_coverage, cache)
     chosen = central[samples.ids]
     out = np.empty((1, grid.height, grid.width), dtype=np.float32)
     img = _refocus_into(table, samples.ids[chosen], samples.values[chosen], _coeffs(np.ones(1)), method, grid,
-                        inv, out)[0]
+                        inv, out, cache)[0]
     if blur_sigma_px > 0:
         img = _gaussian_blur(img, blur_sigma_px)
     np.maximum(img, 0.0, out=img)
@@ -541,17 +545,14 @@ def _gaussian_blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
     return out
 
 
-def _central_samples(table: LightFieldTable, fraction: float) -> np.ndarray:
+def _central_samples(table: LightFieldTable, fraction: float, cache: Cache) -> np.ndarray:
     """Bool mask of the samples within ``fraction`` of the aperture radius (cached)."""
-    key = ("central", float(fraction))
-    mask = table._scratch.get(key)
-    if mask is None:
+    def make() -> np.ndarray:
         r_max = np.float32(fraction * table.aperture_radius_m)
         r2 = table.u_m * table.u_m          # float32 temporaries: the mask needs no more
         r2 += table.v_m * table.v_m
-        mask = r2 <= r_max * r_max
-        table._scratch[key] = mask
-    return mask
+        return r2 <= r_max * r_max
+    return cache.get_or_make(("refocus", table.uid, "central", float(fraction)), make)
 
 
 def products(stack: np.ndarray, subaperture: np.ndarray, *, out: np.ndarray | None = None) -> np.ndarray:

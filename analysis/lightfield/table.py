@@ -16,10 +16,11 @@ light by summed weight, so ``cos^4`` is counted exactly once either way.
 from __future__ import annotations
 
 import math
+import uuid
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -28,8 +29,11 @@ from analysis.camera.model import CameraModel
 from analysis.errors import CalibrationError, ParameterError
 from analysis.camera.image_grid import ImageGrid
 
+if TYPE_CHECKING:
+    from analysis.cache import Cache
+
 # Bump when the saved layout changes, so stale caches are rebuilt, not misread.
-TABLE_FORMAT_VERSION = 4
+TABLE_FORMAT_VERSION = 5
 
 # Empty lens sites kept around the lattice so that shifted samples near the edge still land
 # on the site grid (the simulated f/2 camera shifts by up to about 4 lenses over 0.987 ... 1.013).
@@ -75,6 +79,9 @@ class LightFieldTable:
         Raw black level of the sensor (green channel).
     grid : ImageGrid
         Default output grid of refocused images: covers every lens, one pixel per lens row spacing.
+    uid : str
+        Identity of this table (made when it is built, kept by :func:`save_table`): what derived
+        data is filed under in an :class:`analysis.cache.Cache`.
     """
 
     width: int
@@ -92,16 +99,12 @@ class LightFieldTable:
     rim_px: float
     black_level: float
     grid: ImageGrid
-    # Per-alpha normalisations, computed on first use (analysis.lightfield.refocus) and saved with the table.
-    _normalisations: dict = field(default_factory=dict, compare=False, repr=False)
-    # Work buffers and masks of analysis.lightfield.refocus, kept between calls; never saved.
-    _scratch: dict = field(default_factory=dict, compare=False, repr=False)
+    uid: str = field(default_factory=lambda: uuid.uuid4().hex)
 
     @property
-    def normalisation_keys(self) -> frozenset[bytes]:
-        """Which refocus normalisations the table holds (:func:`save_table` keeps them): a
-        caller that saves the table compares this before and after processing."""
-        return frozenset(self._normalisations)
+    def nbytes(self) -> int:
+        """Memory held by the table's arrays."""
+        return sum(int(getattr(self, name).nbytes) for name in _SAVED_ARRAYS)
 
     @property
     def n_samples(self) -> int:
@@ -329,11 +332,13 @@ def default_grid(lens_xy_m: np.ndarray, basis_m: np.ndarray, *, oversample: floa
 
 
 _SAVED_ARRAYS = ("pixel_index", "lens", "u_m", "v_m", "weight", "lens_ij", "lens_xy_m", "basis_m")
-_SAVED_SCALARS = ("width", "height", "aperture_radius_m", "micro_image_radius_px", "rim_px", "black_level")
+_SAVED_SCALARS = ("width", "height", "aperture_radius_m", "micro_image_radius_px", "rim_px", "black_level", "uid")
+#: Kind of the cache entries that :func:`save_table` keeps with a table (:mod:`analysis.lightfield.refocus`).
+NORMALISATION = "normalisation"
 
 
-def save_table(table: LightFieldTable, path: str | Path) -> Path:
-    """Write the table (and the refocus normalisations computed so far) to an ``.npz`` file.
+def save_table(table: LightFieldTable, path: str | Path, *, cache: Cache | None = None) -> Path:
+    """Write the table to an ``.npz`` file, with the refocus normalisations ``cache`` holds for it.
 
     The file is written beside its final name and renamed into place, so a reader never sees
     half a table.
@@ -345,16 +350,17 @@ def save_table(table: LightFieldTable, path: str | Path) -> Path:
     g = table.grid
     payload["grid"] = np.array([g.width, g.height, g.x0_m, g.y0_m, g.step_m], dtype=np.float64)
     payload["format_version"] = np.asarray(TABLE_FORMAT_VERSION)
-    for n, (key, value) in enumerate(table._normalisations.items()):
-        payload[f"norm{n}_key"] = np.frombuffer(key, dtype=np.uint8)
+    saved = [] if cache is None else list(cache.entries(NORMALISATION, table.uid))
+    for n, (key, value) in enumerate(saved):
+        payload[f"norm{n}_key"] = np.frombuffer(key[2], dtype=np.uint8)
         payload[f"norm{n}_value"] = value
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **payload)
     return path
 
 
-def load_table(path: str | Path) -> LightFieldTable:
-    """Read a table written by :func:`save_table`.
+def load_table(path: str | Path, *, cache: Cache | None = None) -> LightFieldTable:
+    """Read a table written by :func:`save_table`; its refocus normalisations go into ``cache``.
 
     Raises
     ------
@@ -380,7 +386,10 @@ def load_table(path: str | Path) -> LightFieldTable:
     except (OSError, KeyError, ValueError) as exc:
         raise CalibrationError(f"cannot read look-up table {path} ({exc}); delete it so it is rebuilt "
                                "from the calibration") from exc
-    return LightFieldTable(
+    table = LightFieldTable(
         width=int(scalars.pop("width")), height=int(scalars.pop("height")), **arrays, **scalars,
-        grid=ImageGrid(width=int(gw), height=int(gh), x0_m=gx, y0_m=gy, step_m=gs),
-        _normalisations=norms)
+        grid=ImageGrid(width=int(gw), height=int(gh), x0_m=gx, y0_m=gy, step_m=gs))
+    if cache is not None:
+        for key, value in norms.items():
+            cache.put((NORMALISATION, table.uid, key), value)
+    return table

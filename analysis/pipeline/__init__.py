@@ -1,1 +1,11 @@
-"""TODO"""
+"""From an exposure and its calibration to the particle table: the stages composed.
+
+- ``params``: :class:`~analysis.pipeline.params.PipelineParams`, every setting, stored with each result.
+- ``tables``: the look-up tables of a calibration, from the caller's cache or disk, or built.
+- ``candidates``: detection, linking and peaks on the product stack.
+- ``stages``: timing and cost-weighted progress of the stages.
+- ``process``: :func:`~analysis.pipeline.process.process` and ``process_many``.
+- ``result``: :class:`~analysis.pipeline.result.Result`, the particle table with its provenance.
+
+The caller owns the :class:`analysis.cache.Cache` that a batch shares.
+"""

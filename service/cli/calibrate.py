@@ -8,7 +8,9 @@ import sys
 import time
 from pathlib import Path
 
-from analysis.calibration.calibrate import Calibration, cache_path, cached_calibration, select_white_image
+from analysis.calibration.calibrate import Calibration
+from analysis.calibration.cache import cache_path, cached_calibration
+from analysis.calibration.white_choice import select_white_image
 from analysis.errors import AnalysisError
 from analysis.formats.frame_metadata import parse_txt
 from analysis.formats.whites import load_white_images

@@ -42,7 +42,7 @@ def default_cache_dir() -> Path:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from analysis.pipeline.process import PipelineParams
+    from analysis.pipeline.params import PipelineParams
 
     d = PipelineParams()
     p = subparsers.add_parser(
@@ -99,7 +99,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def params_from_args(args: argparse.Namespace) -> Any:
-    from analysis.pipeline.process import PipelineParams
+    from analysis.pipeline.params import PipelineParams
 
     return PipelineParams(
         alpha_min=args.alpha_min, alpha_max=args.alpha_max, n_slices=args.slices,
@@ -135,7 +135,7 @@ class _Calibrations:
         self._loaded: dict[tuple, Any] = {}
 
     def __call__(self, exposure: Any) -> Any:
-        from analysis.calibration.calibrate import load_calibration
+        from analysis.calibration.cache import load_calibration
 
         lens = exposure.metadata.get("devices", {}).get("lens", {})
         key = (exposure.serial, lens.get("zoomStep"), lens.get("focusStep"))
@@ -146,6 +146,7 @@ class _Calibrations:
 
 
 def run(args: argparse.Namespace) -> int:
+    from analysis.cache import Cache
     from analysis.formats.exposure import read_exposure
     from analysis.formats.particle_table import combine, write_csv, write_hdf5
     from analysis.pipeline.process import process
@@ -176,15 +177,16 @@ def run(args: argparse.Namespace) -> int:
 
     cache_dir = None if args.no_cache else (args.cache or default_cache_dir())
     calibrations = _Calibrations(args.calibration, cache_dir)
+    cache = Cache(directory=cache_dir)
     bar = _progress_bar(len(files), quiet=args.quiet)
     results, summary, failed = [], [], 0
     for index, path in enumerate(files):
         entry: dict[str, Any] = {"exposure": str(path)}
         try:
             exposure = read_exposure(path)
-            report = None if bar is None else (lambda f, i=index: _advance(bar, i + f))
+            report = None if bar is None else (lambda f, stage, i=index: _advance(bar, i + f))
             result = process(exposure, calibrations(exposure), params, keep_stack=args.save_stack,
-                             progress=report, cache_dir=cache_dir)
+                             progress=report, cache=cache)
         except (AnalysisError, OSError) as exc:
             failed += 1
             message = getattr(exc, "strerror", None) if isinstance(exc, OSError) and not isinstance(

@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     from analysis.errors import ParameterError
 
     try:
-        from analysis.pipeline.process import PipelineParams
+        from analysis.pipeline.params import PipelineParams
 
         PipelineParams.from_dict(settings.pipeline).validate()
     except ParameterError as exc:

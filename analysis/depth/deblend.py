@@ -1,0 +1,187 @@
+"""Crowds on the raw pixels: refit each particle with its neighbours' light taken off, and split
+fits that hold two particles on one line of sight.
+
+Both take the particles of :func:`analysis.depth.refine.refine_peaks` and return them refitted
+(:class:`analysis.detection.curves.Peaks` with the matching :class:`analysis.depth.rayfit.RayFit`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from analysis.detection.curves import Peaks
+from analysis.lightfield.table import LightFieldTable
+
+from .rayfit import FitGrid, RayFit
+from .refine import (FINE_TEMPERATURE, PROBE_FRACTION, PROBE_GRID, PROBE_HALF_RANGE, PROBE_RESIDUAL,
+    WIDE_PROBE_GRID, RayFitter, accept, moved, replace_fits)
+
+log = logging.getLogger(__name__)
+
+# A fit taken for two particles on one line of sight (split_shared):
+#: it is this many times brighter than the median fit ...
+SPLIT_BRIGHT = 1.3
+#: ... and misfits more than this many times the median misfit;
+SPLIT_MISFIT = 1.0
+#: the split is kept when the host gives up light to its partner (keeps at most this fraction) ...
+SPLIT_HOST_LIGHT = 0.85
+#: ... and then fits its pixels much better (misfit down to this fraction); the partner must pass
+#: as a probe would (PROBE_FRACTION of the host's light, misfit <= PROBE_RESIDUAL).
+SPLIT_HOST_MISFIT = 0.6
+
+
+def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit]:
+    """Refit every particle with its neighbours' fitted light taken off its pixels.
+
+    Each first fit saw its neighbours' light too (crowds: the blurs of particles a pitch or two
+    apart overlap), which pulls position and depth; the refit starts from the first fit. A fit
+    that is left without enough light of its own, or that no longer fits, was a neighbour's light
+    seen twice (a duplicate, or a ghost at another depth) and is dropped. Such fits are screened
+    out first by a cheaper refit (:func:`seen_twice`), so the others are refitted once without
+    their light rather than twice.
+    """
+    # The light of the fits kept so far; a dropped fit's light is taken off it (fewer than re-rendering all).
+    explained = fitter.render(fit)
+    twice = seen_twice(fitter, fit, explained)
+    if twice.any():
+        explained -= fitter.render(fit.take(np.flatnonzero(twice)))
+        keep = np.flatnonzero(~twice)
+        peaks, fit = peaks.take(keep), fit.take(keep)
+    new = fitter.fit(fit.sx_m, fit.sy_m, fit.alpha, subtract=explained, own=fit)
+    ok = fitter.acceptable(new)
+    if not ok.all():
+        # The dropped fits' light was taken off their neighbours' pixels too: refit those without it.
+        near = ok & _overlapping(fitter.table, fit, np.flatnonzero(~ok), pad_pitches=2.0)
+        explained -= fitter.render(fit.take(np.flatnonzero(~ok)))
+        keep = np.flatnonzero(ok)
+        peaks, fit, new, near = peaks.take(keep), fit.take(keep), new.take(keep), near[keep]
+        log.debug("deblend: %d fits dropped, %d neighbours refitted", (~ok).sum(), near.sum())
+        if near.any():
+            again = fitter.fit(fit.sx_m[near], fit.sy_m[near], fit.alpha[near], subtract=explained,
+                               own=fit.take(near))
+            new = replace_fits(fitter.grid, peaks, new, np.flatnonzero(near), again)[1]
+    return accept(fitter, peaks, new)
+
+
+#: The screen's refit (:func:`seen_twice`): after the full coarse pass, 5 depths and +-0.15 pitch,
+#: pixels as 3 x 3 points (on the off-focus ball it drops the same fits as the full refit; the
+#: probes' grid (9, 0.25, 3, 3) cost a quarter more and dropped one the full refit keeps).
+SCREEN_GRID = FitGrid(depths=5, lateral_pitches=0.15, positions=3, pixel_points=3, temperature=FINE_TEMPERATURE)
+#: With 3 x 3 points a good fit's misfit runs a little above the fine pass's, so the screen drops a
+#: fit only beyond this multiple of the misfit limit (on the off-focus ball, 1.0 also dropped two
+#: fits the full refit keeps; 1.5 none, and it finds 36-41 of the 38-42 the full refit drops;
+#: both measured with evenly spaced pixel points).
+SCREEN_RESIDUAL = 1.5
+
+
+def seen_twice(fitter: RayFitter, fit: RayFit, explained: np.ndarray | None = None) -> np.ndarray:
+    """Fits whose light another fit already explains (a mask): refitted on the grid
+    :data:`SCREEN_GRID` with the others' light taken off, they keep too little light or misfit it.
+    ``explained``: the light of all of ``fit`` (:meth:`RayFitter.render`), when already rendered.
+
+    Only fits whose blur disk overlaps another's by at least the larger one's radius are refitted:
+    duplicates lie within a pitch or two of the fit of their particle, mostly with wide blurs.
+    """
+    twice = np.zeros(len(fit), dtype=bool)
+    if len(fit) < 2:
+        return twice
+    pitch = fitter.pitch_m
+    blur = fitter.blur_radius_m(fit.alpha)
+    # Pairs from a tree: a crowd of thousands would make a full distance matrix hundreds of MB.
+    pairs = cKDTree(np.column_stack([fit.sx_m, fit.sy_m])).query_pairs(float(blur.max()) + pitch,
+                                                                       output_type="ndarray")
+    i, j = pairs[:, 0], pairs[:, 1]
+    close = np.hypot(fit.sx_m[i] - fit.sx_m[j], fit.sy_m[i] - fit.sy_m[j]) < np.maximum(blur[i], blur[j]) + pitch
+    suspects = np.unique(np.r_[i[close], j[close]])
+    if suspects.size == 0:
+        return twice
+    sub = fit.take(suspects)
+    explained = fitter.render(fit) if explained is None else explained
+    screen = fitter.fit(sub.sx_m, sub.sy_m, sub.alpha, subtract=explained, own=sub, fine=SCREEN_GRID)
+    twice[suspects] = ((screen.intensity <= max(fitter.min_intensity, 0.0))
+                       | (screen.residual > SCREEN_RESIDUAL * fitter.max_residual))
+    log.debug("deblend screen: %d of %d fits refitted, %d seen twice", suspects.size, len(fit), twice.sum())
+    return twice
+
+
+def split_shared(fitter: RayFitter, peaks: Peaks, fit: RayFit, *, shadow_probe: float,
+                 bright: float = SPLIT_BRIGHT, misfit: float = SPLIT_MISFIT) -> tuple[Peaks, RayFit]:
+    """Split fits that hold the light of two particles on one line of sight.
+
+    A particle hidden behind another can give its light to the other's fit: one fit, brighter
+    than most, explains both, and no light is left over for a probe
+    (:func:`analysis.depth.refine.refine_peaks`) to find. For each fit brighter than ``bright``
+    times the median that also misfits more than ``misfit`` times the median, a partner is tried ``shadow_probe`` in front and behind, starting from half the
+    light each; partner and fit are refitted with each other's light taken off. The split is kept
+    where the fit gives up light to the partner and then fits its pixels much better.
+    """
+    # Two particles taken for one also misfit more than most.
+    parents = (np.flatnonzero((fit.intensity > bright * np.median(fit.intensity))
+                              & (fit.residual > misfit * np.median(fit.residual))) if len(fit) else np.empty(0, int))
+    if parents.size == 0:
+        return peaks, fit
+    par = fit.take(parents)
+    # The light of the other fits that reach the parents' lenses (rendering all would cost more): a
+    # fit's light lands within its blur plus 1.6 pitches (cell and crosstalk), and a fit gathers
+    # lenses up to its blur plus about 2.5 pitches.
+    reach = _overlapping(fitter.table, fit, parents, pad_pitches=4.5)
+    reach[parents] = False
+    others = fitter.render(fit.take(np.flatnonzero(reach)))
+    half = dataclasses.replace(par, intensity=0.5 * par.intensity)
+    found: tuple[np.ndarray, RayFit, RayFit] | None = None
+    for sign in (-1.0, 1.0):
+        start = dataclasses.replace(half, alpha=par.alpha + sign * shadow_probe)
+        # A cheap first look (the probes' grid); only where it finds light of its own, the full refits.
+        partner = fitter.fit(start.sx_m, start.sy_m, start.alpha, subtract=others + fitter.render(half),
+                             alpha_half_range=PROBE_HALF_RANGE, fine=PROBE_GRID, wide_fine=WIDE_PROBE_GRID)
+        good = np.zeros(len(par), dtype=bool)
+        host = par
+        look = np.flatnonzero(partner.intensity >= PROBE_FRACTION * half.intensity)
+        if look.size:
+            p0, h0 = partner.take(look), par.take(look)
+            h = fitter.fit(h0.sx_m, h0.sy_m, h0.alpha, subtract=others + fitter.render(p0))
+            q = fitter.fit(p0.sx_m, p0.sy_m, p0.alpha, subtract=others + fitter.render(h),
+                           alpha_half_range=PROBE_HALF_RANGE)
+            good[look] = ((q.intensity >= PROBE_FRACTION * h.intensity) & (q.residual <= PROBE_RESIDUAL)
+                          & (h.intensity <= SPLIT_HOST_LIGHT * h0.intensity)
+                          & (h.residual <= SPLIT_HOST_MISFIT * h0.residual)
+                          & (np.abs(q.alpha - h.alpha) > fitter.merge_alpha))
+            host, partner = par.with_rows(look, h), partner.with_rows(look, q)
+        if found is None:
+            found = (good, host, partner)
+        else:
+            # Both sides split: keep the side whose partner took more light.
+            use = good & (~found[0] | (partner.intensity > found[2].intensity))
+            found = (found[0] | good, host.where(use, found[1]), partner.where(use, found[2]))
+    good, host, partner = found
+    rows = np.flatnonzero(good)
+    log.debug("split: %d of %d bright fits hold two particles", rows.size, parents.size)
+    if rows.size == 0:
+        return peaks, fit
+    peaks, fit = replace_fits(fitter.grid, peaks, fit, parents[rows], host.take(rows))
+    new = partner.take(rows)
+    both, both_fit = Peaks.concat(peaks, moved(fitter.grid, peaks.take(parents[rows]), new)), RayFit.concat(fit, new)
+    kept = fitter.unique(both, both_fit, settled=len(peaks))  # the fits kept so far win over partners
+    return both.take(kept), both_fit.take(kept)
+
+
+def _overlapping(table: LightFieldTable, fit: RayFit, rows: np.ndarray, *, pad_pitches: float) -> np.ndarray:
+    """Fits (a mask) whose blur disk, grown with that of one of the fits ``rows`` by ``pad_pitches``
+    in all, meets it: ``distance < blur + blur_row + pad`` (blur radii on the MLA)."""
+    pitch = float(np.hypot(*table.basis_m[:, 0]))
+    blur = np.abs(1.0 - 1.0 / fit.alpha) * table.aperture_radius_m
+    out = np.zeros(len(fit), dtype=bool)
+    if len(fit) == 0 or rows.size == 0:
+        return out
+    xy = np.column_stack([fit.sx_m, fit.sy_m])
+    # Candidates from a tree (a crowd of thousands would make a full distance matrix hundreds of MB).
+    hits = cKDTree(xy).query_ball_point(xy[rows], blur[rows] + blur.max() + pad_pitches * pitch)
+    for r, near in zip(rows, hits):
+        near = np.asarray(near, dtype=np.int64)
+        d = np.hypot(fit.sx_m[near] - fit.sx_m[r], fit.sy_m[near] - fit.sy_m[r])
+        out[near[d < blur[near] + blur[r] + pad_pitches * pitch]] = True
+    return out

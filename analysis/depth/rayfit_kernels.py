@@ -1,0 +1,489 @@
+"""The depth fit's numba kernels (:mod:`analysis.depth.rayfit` is their Python side).
+
+They take arrays, scalars and the small named tuples below, and fill caller-allocated outputs.
+The geometry: a ray from aperture point ``u`` toward a point at lens-plane position ``s`` with
+``c = 1 - 1/alpha`` crosses the micro-lens plane at ``s + c u`` and lands behind the lens whose
+hexagonal cell contains it; a pixel is a set of points (its area blurred, the ``footprint``), and
+points beyond the micro-image rim see the neighbouring lens's aperture instead (crosstalk).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numba
+import numpy as np
+from numba import prange
+
+FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
+
+
+class Cells(NamedTuple):
+    """The micro-lens cells as the kernels see them (lens-plane metres)."""
+
+    normals: np.ndarray      # (3, 2) neighbour directions: a point is in a cell when its offset
+    #                          projects to at most half of each of them
+    half_sq: np.ndarray      # (3,) half the squared length of each normal
+    neigh_u: np.ndarray      # (6, 2) aperture offset of each neighbour's micro-image (crosstalk)
+    neigh_s: np.ndarray      # (6, 2) lens-plane offset of each neighbour
+    r_ap2: float             # squared aperture radius (with a hair of slack)
+    pitch: float             # lens pitch
+
+
+class GridPass(NamedTuple):
+    """One pass of the grid search: candidate depths and positions, and how pixels are modelled."""
+
+    n_depths: int            # depths, evenly over the pass's [c_lo, c_hi]
+    half_lateral: float      # positions span +- this (metres) about the start in x and y ...
+    n_lateral: int           # ... this many per side
+    footprint: np.ndarray    # (n, 2) aperture-metre offsets standing for a pixel's blurred area
+    temperature: float       # cost difference (mismatched pixels) over which weights fall by 1/e
+
+
+class PriorTerms(NamedTuple):
+    """A depth prior per particle, in ``c``: Gaussian centre, ``1 / (2 sigma^2)`` (0: none), floor."""
+
+    centre_c: np.ndarray
+    k: np.ndarray
+    floor: np.ndarray
+
+
+@numba.njit(cache=True, parallel=True, fastmath=FASTMATH)
+def fit_all(centres, sample_ptr, lens_ptr, uv, values, sx0, sy0, c_lo, c_hi, cells, coarse, fine, prior, out,
+            order, slot_ptr):
+    # Per particle, a coarse grid search over [c_lo, c_hi] then a fine one around its result;
+    # `coarse` and `fine` are GridPass tuples, `prior` a PriorTerms tuple (one entry per particle).
+    # One slot of particles (order[slot_ptr[s]:slot_ptr[s + 1]]) per prange iteration, one slot per
+    # thread; each particle writes only its own row of `out`.
+    n_c = coarse.n_depths
+    c_prior, prior_k, prior_floor = prior.centre_c, prior.k, prior.floor
+    for s in prange(slot_ptr.size - 1):
+        for i in range(slot_ptr[s], slot_ptr[s + 1]):
+            p = order[i]
+            la, lb = lens_ptr[p], lens_ptr[p + 1]
+            cen = centres[la:lb]
+            ptr = sample_ptr[la:lb + 1]
+            first = np.empty(7)
+            _fit_one(cen, ptr, uv, values, sx0[p], sy0[p], c_lo[p], c_hi[p], coarse, cells, c_prior[p],
+                     prior_k[p], prior_floor[p], first)
+            if first[3] <= 0.0:
+                out[p, :] = first
+                continue
+            step = (c_hi[p] - c_lo[p]) / max(n_c - 1, 1)
+            half_c = max(2.0 * first[6], 1.5 * step)
+            _fit_one(cen, ptr, uv, values, first[0], first[1], first[2] - half_c, first[2] + half_c, fine, cells,
+                     c_prior[p], prior_k[p], prior_floor[p], out[p])
+
+
+@numba.njit(cache=True, fastmath=FASTMATH)
+def _fit_one(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, grid, cells, c_prior, prior_k, prior_floor, out):
+    """Grid of (c, s) candidates over the lenses ``centres`` (samples ``ptr[l]:ptr[l+1]`` each);
+    writes mean s_x, s_y, c, best I0, lit samples, residual, std of c."""
+    temperature = grid.temperature
+    m, costs, cand, inten, lit = grid_costs(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, grid, cells)
+    n_cand = costs.size
+    best = 0
+    for k in range(n_cand):
+        if costs[k] < costs[best]:
+            best = k
+    i0 = inten[best]
+    if i0 <= 0.0:
+        out[0] = sx0
+        out[1] = sy0
+        out[2] = 0.5 * (c_lo + c_hi)
+        out[3] = 0.0
+        out[4] = 0.0
+        out[5] = np.nan
+        out[6] = np.nan
+        return
+    # Weighted mean over candidates: cost in units of one mismatched pixel (I0^2).
+    scale = temperature * i0 * i0
+    wsum = 0.0
+    mx = 0.0
+    my = 0.0
+    mc = 0.0
+    mc2 = 0.0
+    for k in range(n_cand):
+        dc = cand[k, 2] - c_prior
+        w = np.exp(-(costs[k] - costs[best]) / scale) * (np.exp(-prior_k * dc * dc) + prior_floor)
+        wsum += w
+        mx += w * cand[k, 0]
+        my += w * cand[k, 1]
+        mc += w * cand[k, 2]
+        mc2 += w * cand[k, 2] * cand[k, 2]
+    mc /= wsum
+    out[0] = mx / wsum
+    out[1] = my / wsum
+    out[2] = mc
+    out[3] = i0
+    out[4] = lit[best]
+    out[5] = np.sqrt(max(costs[best], 0.0) / max(m, 1)) / i0
+    out[6] = np.sqrt(max(mc2 / wsum - mc * mc, 0.0))
+
+
+@numba.njit(cache=True, fastmath=FASTMATH)
+def grid_costs(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, grid, cells):
+    """Cost, best I0 and lit samples of each candidate ``(s_x, s_y, c)`` of ``grid`` (a
+    :class:`GridPass`: depths over ``[c_lo, c_hi]``, positions about ``(sx0, sy0)``) in its order
+    (depth, then y, then x): returns the number of samples and the arrays ``costs``, ``cand``
+    (candidate s_x, s_y, c), ``inten`` and ``lit``.
+
+    A sample's lit fraction is that of :func:`analysis.depth.render_kernels.lit_fraction`, with the same shortcuts (a footprint
+    wholly inside or outside the cell by the margin ``|c| s_max``, crosstalk only near the rim),
+    but the ``n_lat`` x ``n_lat`` positions of one depth are handled together: whether a ray lands
+    in a cell is decided by its projections on the cell's three normals, to which a position adds
+    the same offset for every ray, so each sample's are computed once per depth. Samples whose
+    rays stay beyond a side of the cell at every position (a bound on the positions' offsets)
+    are skipped, and so are whole lenses and, within a lens, the rows of samples too far from the
+    cell. Sums run over lenses and samples in the order of one candidate at a time.
+    """
+    normals, half_sq, neigh_u, neigh_s, r_ap2, pitch = cells
+    n_c, half_lat, n_lat, sub = grid.n_depths, grid.half_lateral, grid.n_lateral, grid.footprint
+    n_sub = sub.shape[0]
+    n_lens = centres.shape[0]
+    n_pos = n_lat * n_lat
+    n_cand = n_c * n_pos
+    costs = np.empty(n_cand)
+    cand = np.empty((n_cand, 3))
+    inten = np.empty(n_cand)
+    lit = np.empty(n_cand)
+    j_first = ptr[0] if n_lens > 0 else 0
+    m = ptr[n_lens] - j_first if n_lens > 0 else 0
+    sum_v2 = 0.0
+    for j in range(j_first, j_first + m):
+        sum_v2 += values[j] * values[j]
+    r_ap = np.sqrt(r_ap2)
+    # Circumradius of a lens cell (a regular hexagon's is pitch / sqrt(3)), and the farthest
+    # point of a pixel's footprint; samples within `inner` of the aperture centre see no crosstalk.
+    cell_r = 0.6 * pitch
+    s_max = 0.0
+    for q in range(n_sub):
+        s_max = max(s_max, np.sqrt(sub[q, 0] * sub[q, 0] + sub[q, 1] * sub[q, 1]))
+    inner = max(r_ap - s_max, 0.0)
+    inner2 = inner * inner * (1.0 - 1e-9)
+    is_inner, code, n_ap, used = _apertures_seen(uv, j_first, m, sub, neigh_u, r_ap2, inner2)
+    rim_ptr, rim_j, v_sorted, most = _rim_samples(ptr, uv, is_inner, n_ap)
+    off_x, off_y, d0, d1, d2 = _position_offsets(half_lat, n_lat, normals)
+    h0 = half_sq[0]
+    h1 = half_sq[1]
+    h2 = half_sq[2]
+    # How far a position lies from the grid's centre: as a distance, and along each normal; with
+    # a little slack, so that rounding cannot make a bound reject a lit sample.
+    lat_r = half_lat * np.sqrt(2.0) * (1.0 + 1e-9) + 1e-9 * pitch
+    lat_t = np.empty(3)
+    for t in range(3):
+        lat_t[t] = half_lat * (abs(normals[t, 0]) + abs(normals[t, 1])) * (1.0 + 1e-9) + 1e-9 * half_sq[t]
+    sub_t = np.empty((n_sub, 3))  # footprint points along each normal, per unit c
+    sub_ext = np.zeros(3)  # their farthest, per normal
+    for q in range(n_sub):
+        for t in range(3):
+            sub_t[q, t] = sub[q, 0] * normals[t, 0] + sub[q, 1] * normals[t, 1]
+            sub_ext[t] = max(sub_ext[t], abs(sub_t[q, t]))
+    pt_t = np.empty(3)
+    shift_t = np.zeros((7, 3))  # crosstalk ray offsets along the normals (row 0: the own ray)
+    todo = np.empty(most, dtype=np.int64)
+    base = np.empty((n_sub, 3))
+    within = np.empty(n_pos, dtype=np.bool_)
+    frac = np.empty(n_pos)
+    cnt = np.empty(n_pos)
+    s_vf = np.empty(n_pos)
+    s_ff = np.empty(n_pos)
+    s_f = np.empty(n_pos)
+    k = 0
+    for ic in range(n_c):
+        c = c_lo + (c_hi - c_lo) * ic / max(n_c - 1, 1)
+        # A lens can only be lit if its cell (or, by crosstalk, a neighbour's) meets the footprint.
+        reach = abs(c) * r_ap + 1.8 * pitch
+        reach2 = reach * reach
+        lim = cell_r + abs(c) * s_max
+        margin = abs(c) * s_max * pitch
+        lim2 = lim * lim
+        near_in = lim + lat_r  # a ray farther than this from a cell centre misses it at every position
+        for t in range(3):
+            pt_t[t] = lat_t[t] + abs(c) * sub_ext[t] * (1.0 + 1e-9)
+        for nb in range(6):
+            # A rim point that sees neighbour nb's aperture point is lit when its ray, offset by
+            # c neigh_u - neigh_s, lands in this lens's cell.
+            sx_nb = c * neigh_u[nb, 0] - neigh_s[nb, 0]
+            sy_nb = c * neigh_u[nb, 1] - neigh_s[nb, 1]
+            for t in range(3):
+                shift_t[nb + 1, t] = sx_nb * normals[t, 0] + sy_nb * normals[t, 1]
+        s_vf[:] = 0.0
+        s_ff[:] = 0.0
+        s_f[:] = 0.0
+        for lens in range(n_lens):
+            cx = centres[lens, 0]
+            cy = centres[lens, 1]
+            gx = cx - sx0
+            gy = cy - sy0
+            if np.sqrt(gx * gx + gy * gy) > reach + lat_r:
+                continue
+            n_within = 0
+            for q in range(n_pos):
+                ex = gx - off_x[q]
+                ey = gy - off_y[q]
+                within[q] = ex * ex + ey * ey <= reach2
+                n_within += within[q]
+            if n_within == 0:
+                continue
+            n_todo = _samples_to_visit(uv, ptr[lens], ptr[lens + 1], rim_j[rim_ptr[lens]:rim_ptr[lens + 1]],
+                                       v_sorted[lens], gx, gy, c, near_in + abs(c) * inner * (1.0 + 1e-9)
+                                       + 1e-9 * pitch, near_in * (1.0 + 1e-9) + 1e-9 * pitch, todo)
+            for t_j in range(n_todo):
+                j = todo[t_j]
+                i = j - j_first
+                # The grid centre's ray, from the lens centre, and along each normal.
+                ox = sx0 + c * uv[j, 0] - cx
+                oy = sy0 + c * uv[j, 1] - cy
+                p0 = ox * normals[0, 0] + oy * normals[0, 1]
+                p1 = ox * normals[1, 0] + oy * normals[1, 1]
+                p2 = ox * normals[2, 0] + oy * normals[2, 1]
+                if is_inner[i]:
+                    if ox * ox + oy * oy > near_in * near_in or _beyond(p0, p1, p2, margin, lat_t, half_sq):
+                        continue
+                    # Per position: 0 beyond `lim` or where the footprint lies outside the cell by
+                    # the margin, 1 where wholly inside, else the share of its points inside.
+                    straddles = False
+                    for q in range(n_pos):
+                        fx = ox + off_x[q]
+                        fy = oy + off_y[q]
+                        a0 = abs(p0 + d0[q])
+                        a1 = abs(p1 + d1[q])
+                        a2 = abs(p2 + d2[q])
+                        f = 1.0
+                        if (a0 + margin > h0) or (a1 + margin > h1) or (a2 + margin > h2):
+                            f = -1.0
+                        if (a0 - margin > h0) or (a1 - margin > h1) or (a2 - margin > h2):
+                            f = 0.0
+                        if fx * fx + fy * fy > lim2 or not within[q]:
+                            f = 0.0
+                        frac[q] = f
+                        straddles |= f < 0.0
+                    if straddles:
+                        for q in range(n_sub):
+                            base[q, 0] = p0 + c * sub_t[q, 0]
+                            base[q, 1] = p1 + c * sub_t[q, 1]
+                            base[q, 2] = p2 + c * sub_t[q, 2]
+                        _count_inside(base, n_sub, d0, d1, d2, h0, h1, h2, cnt)
+                        for q in range(n_pos):
+                            if frac[q] < 0.0:
+                                frac[q] = cnt[q] / n_sub
+                else:
+                    if n_ap[i] == 0:
+                        continue
+                    # Skip unless some point, through its own ray or the crosstalk ray of the
+                    # aperture it sees, may land in the cell at some position (`pt_t` bounds the
+                    # footprint's and the positions' extent along each normal).
+                    near = False
+                    for w in range(7):
+                        if (used[i] >> w) & 1 and not _beyond(p0 + shift_t[w, 0], p1 + shift_t[w, 1],
+                                                              p2 + shift_t[w, 2], 0.0, pt_t, half_sq):
+                            near = True
+                            break
+                    if not near:
+                        continue
+                    n_pt = 0
+                    for q in range(n_sub):
+                        w = code[i, q] + 1
+                        if w >= 0:
+                            base[n_pt, 0] = p0 + shift_t[w, 0] + c * sub_t[q, 0]
+                            base[n_pt, 1] = p1 + shift_t[w, 1] + c * sub_t[q, 1]
+                            base[n_pt, 2] = p2 + shift_t[w, 2] + c * sub_t[q, 2]
+                            n_pt += 1
+                    _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, cnt)
+                    # Where points land in the cell, the per-candidate shortcut still applies: the
+                    # footprint around the ray, or around one of its six crosstalk rays (whether
+                    # or not a point sees that neighbour), must meet the cell by the margin.
+                    for q in range(n_pos):
+                        f = 0.0
+                        if cnt[q] > 0.0 and within[q]:
+                            for w in range(7):
+                                a0 = abs(p0 + shift_t[w, 0] + d0[q])
+                                a1 = abs(p1 + shift_t[w, 1] + d1[q])
+                                a2 = abs(p2 + shift_t[w, 2] + d2[q])
+                                if not ((a0 - margin > h0) or (a1 - margin > h1) or (a2 - margin > h2)):
+                                    f = cnt[q] / n_ap[i]
+                                    break
+                        frac[q] = f
+                v = values[j]
+                for q in range(n_pos):
+                    f = frac[q]
+                    if f > 0.0:
+                        s_vf[q] += v * f
+                        s_ff[q] += f * f
+                        s_f[q] += f
+        for q in range(n_pos):
+            if s_ff[q] > 0 and s_vf[q] > 0:
+                costs[k] = sum_v2 - s_vf[q] * s_vf[q] / s_ff[q]
+                inten[k] = s_vf[q] / s_ff[q]
+            else:
+                costs[k] = sum_v2
+                inten[k] = 0.0
+            lit[k] = s_f[q]
+            cand[k, 0] = sx0 + off_x[q]
+            cand[k, 1] = sy0 + off_y[q]
+            cand[k, 2] = c
+            k += 1
+    return m, costs, cand, inten, lit
+
+
+@numba.njit(cache=True, fastmath=FASTMATH)
+def _apertures_seen(uv, j_first, m, sub, neigh_u, r_ap2, inner2):
+    """Per sample ``j_first + i``: whether it lies within ``inner`` (no crosstalk), and for the
+    others which aperture each point of its footprint sees (``code``: -1 its own, ``nb`` that of
+    neighbour ``nb`` by crosstalk, -2 none), how many see one (``n_ap``), and which (``used``: bit
+    ``w`` for aperture ``w - 1``), as :func:`analysis.depth.render_kernels.lit_fraction` decides it."""
+    n_sub = sub.shape[0]
+    # A point nearer the centre than the nearest neighbour's aperture (|neigh_u| - r_ap) sees none
+    # of theirs.
+    nu_min = np.inf
+    for nb in range(6):
+        nu_min = min(nu_min, np.sqrt(neigh_u[nb, 0] * neigh_u[nb, 0] + neigh_u[nb, 1] * neigh_u[nb, 1]))
+    no_neigh = max(nu_min - np.sqrt(r_ap2), 0.0) * (1.0 - 1e-9)
+    is_inner = np.empty(m, dtype=np.bool_)
+    code = np.full((m, n_sub), -1, dtype=np.int8)
+    n_ap = np.full(m, n_sub, dtype=np.int64)
+    used = np.ones(m, dtype=np.int64)
+    for i in range(m):
+        u0 = uv[j_first + i, 0]
+        v0 = uv[j_first + i, 1]
+        is_inner[i] = u0 * u0 + v0 * v0 <= inner2
+        if is_inner[i]:
+            continue
+        n = 0
+        bits = 0
+        for q in range(n_sub):
+            ux = u0 + sub[q, 0]
+            uy = v0 + sub[q, 1]
+            r2 = ux * ux + uy * uy
+            if r2 > r_ap2:
+                code[i, q] = -2
+                if r2 < no_neigh * no_neigh:
+                    continue
+                for nb in range(6):
+                    vx = ux + neigh_u[nb, 0]
+                    vy = uy + neigh_u[nb, 1]
+                    if vx * vx + vy * vy <= r_ap2:
+                        code[i, q] = nb
+                        break
+            if code[i, q] != -2:
+                n += 1
+                bits |= 1 << (code[i, q] + 1)
+        n_ap[i] = n
+        used[i] = bits
+    return is_inner, code, n_ap, used
+
+
+@numba.njit(cache=True)
+def _rim_samples(ptr, uv, is_inner, n_ap):
+    """Per lens: its rim samples that some aperture lights (``rim_j[rim_ptr[l]:rim_ptr[l + 1]]``,
+    in order), whether its samples run by non-increasing v (rows of the micro-image), and the
+    most samples of one lens."""
+    n_lens = ptr.size - 1
+    j_first = ptr[0] if n_lens > 0 else 0
+    rim_ptr = np.zeros(n_lens + 1, dtype=np.int64)
+    rim_j = np.empty(is_inner.size, dtype=np.int64)
+    v_sorted = np.ones(n_lens, dtype=np.bool_)
+    n_rim = 0
+    most = 0
+    for lens in range(n_lens):
+        most = max(most, ptr[lens + 1] - ptr[lens])
+        for j in range(ptr[lens], ptr[lens + 1]):
+            if not is_inner[j - j_first] and n_ap[j - j_first] > 0:
+                rim_j[n_rim] = j
+                n_rim += 1
+            if j > ptr[lens] and uv[j, 1] > uv[j - 1, 1]:
+                v_sorted[lens] = False
+        rim_ptr[lens + 1] = n_rim
+    return rim_ptr, rim_j, v_sorted, most
+
+
+@numba.njit(cache=True, fastmath=FASTMATH)
+def _position_offsets(half_lat, n_lat, normals):
+    """Offsets of the ``n_lat`` x ``n_lat`` candidate positions from the grid's centre along x, y
+    and each cell normal (position ``iy * n_lat + ix``, spaced as :func:`_fit_one` spaces them)."""
+    n_pos = n_lat * n_lat
+    step = np.empty(n_lat)
+    for i in range(n_lat):
+        step[i] = -half_lat + 2.0 * half_lat * i / max(n_lat - 1, 1)
+    off_x = np.empty(n_pos)
+    off_y = np.empty(n_pos)
+    d0 = np.empty(n_pos)
+    d1 = np.empty(n_pos)
+    d2 = np.empty(n_pos)
+    for iy in range(n_lat):
+        for ix in range(n_lat):
+            q = iy * n_lat + ix
+            off_x[q] = step[ix]
+            off_y[q] = step[iy]
+            d0[q] = step[ix] * normals[0, 0] + step[iy] * normals[0, 1]
+            d1[q] = step[ix] * normals[1, 0] + step[iy] * normals[1, 1]
+            d2[q] = step[ix] * normals[2, 0] + step[iy] * normals[2, 1]
+    return off_x, off_y, d0, d1, d2
+
+
+@numba.njit(cache=True, inline="always")
+def _samples_to_visit(uv, j0, j1, rim, v_sorted, gx, gy, c, inner_reach, near_in, todo):
+    """Samples ``j0:j1`` of one lens (centre ``(gx, gy)`` from the grid's centre) that may be lit
+    at depth ``c``, in order, into ``todo``; returns how many. Those away from the rim need a ray
+    within ``near_in`` of the centre: none when the lens is farther than ``inner_reach``, else
+    (samples by rows) those whose v puts it within ``near_in`` along y. The rim samples ``rim``
+    (crosstalk) are all visited."""
+    ja = j0
+    jb = j0
+    if np.sqrt(gx * gx + gy * gy) <= inner_reach:
+        jb = j1
+        if v_sorted and c != 0.0:
+            half_band = near_in / abs(c)  # |sy0 + c v - cy| <= near_in
+            ja = _first_below(uv, j0, j1, gy / c + half_band)
+            jb = max(ja, _first_below(uv, ja, j1, gy / c - half_band))
+    n = 0
+    r = 0
+    while r < rim.size and rim[r] < ja:  # rim samples before the band
+        todo[n] = rim[r]
+        n += 1
+        r += 1
+    for j in range(ja, jb):
+        todo[n] = j
+        n += 1
+    while r < rim.size:  # and after it
+        if rim[r] >= jb:
+            todo[n] = rim[r]
+            n += 1
+        r += 1
+    return n
+
+
+@numba.njit(cache=True, inline="always")
+def _first_below(uv, lo, hi, v):
+    """First sample in ``lo:hi`` (v non-increasing) whose v is below ``v``; ``hi`` if none."""
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if uv[mid, 1] >= v:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@numba.njit(cache=True, inline="always", fastmath=FASTMATH)
+def _beyond(p0, p1, p2, margin, lat_t, half_sq):
+    """True when every ray whose projections on the cell normals lie within ``lat_t`` of
+    ``(p0, p1, p2)`` is beyond one side of the cell by more than ``margin``."""
+    return (abs(p0) - lat_t[0] - margin > half_sq[0] or abs(p1) - lat_t[1] - margin > half_sq[1]
+            or abs(p2) - lat_t[2] - margin > half_sq[2])
+
+
+@numba.njit(cache=True, fastmath=FASTMATH)
+def _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, cnt):
+    """``cnt[q]``: how many of the points ``base[:n_pt]`` (projections on the three normals) lie in
+    the cell (half-widths ``h``) when moved by position ``q``'s offsets ``(d0, d1, d2)[q]``."""
+    n_pos = cnt.shape[0]
+    for q in range(n_pos):
+        cnt[q] = 0.0
+    for i in range(n_pt):
+        b0 = base[i, 0]
+        b1 = base[i, 1]
+        b2 = base[i, 2]
+        for q in range(n_pos):
+            cnt[q] += 1.0 if (abs(b0 + d0[q]) <= h0) & (abs(b1 + d1[q]) <= h1) & (abs(b2 + d2[q]) <= h2) else 0.0

@@ -1,0 +1,85 @@
+"""Candidate particles from the product stack: detection per slice, brightness curves and their
+peaks, and the stack's local maxima where neighbours' blobs merge (stages 5 and 6 of the design)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from analysis.detection.curves import Peaks, Tracks, find_depth_peaks, link_tracks, merge_duplicates
+from analysis.detection.maxima import find_maxima
+from analysis.detection.moments import detect
+
+from .params import PipelineParams
+from .stages import StageClock
+
+
+def product_threshold(noise_dn: float, params: PipelineParams) -> float:
+    """Detection threshold for the product images: ``params.threshold``, or
+    ``(threshold_sigma * noise_dn)**2``.
+
+    A product pixel is a refocused value times a sub-aperture value, both in DN per unit white
+    weight; it passes when both factors stand ``threshold_sigma`` raw-noise sigmas above the
+    background. (The product's own pixel statistics are no guide: most pixels are exactly zero
+    once the refocus skips samples in the noise, and the rest are mostly particle light.)
+    """
+    if params.threshold is not None:
+        return float(params.threshold)
+    return (params.threshold_sigma * max(noise_dn, 0.5)) ** 2
+
+
+def locate(product: np.ndarray, alphas: np.ndarray, params: PipelineParams, *, threshold: float,
+           clock: StageClock | None = None) -> tuple[Peaks, Tracks]:
+    """Detection in every product slice, linking, and the brightness peaks (stages 5 and 6)."""
+    clock = StageClock() if clock is None else clock
+    with clock.stage("detect"):
+        detections = [detect(s, threshold=threshold, min_pixels=params.min_pixels) for s in product]
+    with clock.stage("link"):
+        tracks = link_tracks(detections, radius_px=params.link_radius_px, max_gap=params.max_gap)
+    with clock.stage("peaks"):
+        peaks = find_depth_peaks(tracks, alphas, min_prominence=params.min_prominence,
+                                 fit_half_width=params.fit_half_width)
+        step = float(alphas[1] - alphas[0])
+        peaks = merge_duplicates(peaks, radius_px=params.link_radius_px, alpha_tolerance=1.5 * step)
+    with clock.stage("maxima"):
+        if params.maxima_half_slices >= 0:
+            peaks, tracks = _add_maxima(product, alphas, params, threshold, peaks, tracks)
+    return peaks, tracks
+
+
+def _add_maxima(product: np.ndarray, alphas: np.ndarray, params: PipelineParams, threshold: float,
+                peaks: Peaks, tracks: Tracks) -> tuple[Peaks, Tracks]:
+    """Add the local maxima of the product stack that no brightness-curve peak accounts for.
+
+    In crowds the blobs of neighbours merge into one component per slice, and their tracks hold
+    one peak for several particles; each particle still makes a maximum of its own over (alpha,
+    y, x). Each new candidate gets a curve of its own: the product at its pixel, slice by slice.
+    """
+    m = find_maxima(product, alphas, threshold=threshold, half_slices=params.maxima_half_slices, half_px=1)
+    if len(m) == 0:
+        return peaks, tracks
+    step = float(alphas[1] - alphas[0])
+    new = np.ones(len(m), dtype=bool)
+    if len(peaks):
+        # Within the linking radius and two slices of a peak: the same particle.
+        near = cKDTree(np.column_stack([peaks.x, peaks.y])).query_ball_point(
+            np.column_stack([m.x, m.y]), r=params.link_radius_px)
+        for i, js in enumerate(near):
+            if js and np.min(np.abs(peaks.alpha[js] - m.alpha[i])) <= 2 * step:
+                new[i] = False
+    idx = np.flatnonzero(new)
+    n = idx.size
+    if n == 0:
+        return peaks, tracks
+    rows = np.clip(np.rint(m.y[idx]).astype(np.int64), 0, product.shape[1] - 1)
+    cols = np.clip(np.rint(m.x[idx]).astype(np.int64), 0, product.shape[2] - 1)
+    curve = product[:, rows, cols].T.astype(np.float64)
+    curve[curve <= threshold] = np.nan
+    extra = Tracks(x=np.repeat(m.x[idx, None], alphas.size, axis=1), y=np.repeat(m.y[idx, None], alphas.size, axis=1),
+                   brightness=curve)
+    cand = Peaks(track=len(tracks) + np.arange(n, dtype=np.int64), alpha=m.alpha[idx], x=m.x[idx], y=m.y[idx],
+                 peak_height=m.brightness[idx], peak_width=np.full(n, np.nan), residual=np.full(n, np.nan),
+                 prominence=np.ones(n))
+    tracks = Tracks(x=np.vstack([tracks.x, extra.x]), y=np.vstack([tracks.y, extra.y]),
+                    brightness=np.vstack([tracks.brightness, extra.brightness]))
+    return Peaks.concat(peaks, cand), tracks

@@ -1,0 +1,179 @@
+"""Every setting of the pipeline, in one object that is stored with each result."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import numpy as np
+
+from analysis.camera.coordinates import UserCalibration
+from analysis.errors import ParameterError
+from analysis.lightfield.refocus import alphas_for_depth_range, default_alphas
+
+
+@dataclass
+class PipelineParams:
+    """Every setting of the pipeline; stored with each result.
+
+    Attributes
+    ----------
+    alpha_min, alpha_max, n_slices
+        Refocus parameters of the stack (the paper: 40 over 0.987 ... 1.013).
+    depth_range_mm : [near, far] or None
+        Derive the alpha range from a depth range with the thin-lens model instead.
+    aperture_fraction, blur_sigma_px
+        The sub-aperture image: central fraction of the aperture radius, Gaussian blur
+        (output pixels).
+    grid_oversample
+        Output pixels per lens row spacing (1: about one pixel per lens).
+    noise_sigmas
+        Raw samples within this many noise sigmas of the background are skipped in the refocus.
+    threshold
+        Absolute detection threshold on the product images; None: ``(threshold_sigma *
+        raw noise)**2`` (:func:`product_threshold`).
+    threshold_sigma, min_pixels
+        Detection (:func:`analysis.detection.moments.detect`).
+    link_radius_px, max_gap
+        Linking across slices (:func:`analysis.detection.curves.link_tracks`), output pixels.
+    min_prominence, fit_half_width
+        Peaks of the brightness curves (:func:`analysis.detection.curves.find_depth_peaks`).
+    refine, refine_alpha_range
+        Refine each peak's position and depth by fitting the forward model to the raw pixels
+        around it (:func:`analysis.depth.rayfit.fit_rays`), searching ``alpha +- refine_alpha_range``.
+    shadow_probe
+        After the fit, where light is left over around a particle, look for a hidden one this far
+        in alpha in front of and behind it; after deblending, try splitting unusually bright fits
+        into two particles that far apart (:func:`analysis.depth.deblend.split_shared`). 0 turns both off.
+    maxima_half_slices
+        Also take the local maxima of the product stack over (alpha, y, x) as candidates
+        (:func:`analysis.detection.maxima.find_maxima`, footprint +-this many slices and +-1 pixel) where no
+        brightness-curve peak accounts for them: crowds, where neighbours' blobs merge into one
+        component. -1 turns it off.
+    fit_depths, fit_lateral
+        The depth fit's coarse grid (:func:`analysis.depth.rayfit.fit_rays`): depths, and positions
+        per side over +-0.4 pitch. Near focus depth and position are coupled (how the light splits
+        between lenses), so positions every 0.2 pitch beat more depths. The fine pass around the
+        coarse estimate is :data:`analysis.depth.refine.FINE_GRID`.
+    deblend
+        Refit every particle with its neighbours' fitted light taken off its pixels
+        (:func:`deblend`): in crowds their blurs overlap and pull each other's fits.
+    depth_prior
+        Where a particle's pixels leave its depth open (its light falls in one micro-lens) and its
+        neighbours lie on one surface, take the depth that surface predicts as a prior
+        (:func:`apply_depth_prior`, :mod:`analysis.depth.prior`); in a 3D crowd no surface fits and
+        it does nothing. Turn it off to measure out-of-surface motion from the pixels alone.
+    merge_slices
+        Refined particles closer than ``link_radius_px`` in the image and this many slices in alpha
+        are one particle (the brighter kept): candidates of one particle converge there.
+    passes
+        Detection passes: each after the first looks again at the raw image with the light of the
+        particles found so far taken off (crowded clusters, where blobs merge). 1: a single pass.
+    min_intensity_sigma, max_fit_residual
+        Refined particles whose fitted pixel intensity is below this many raw-noise sigmas, or
+        whose forward-model misfit per pixel exceeds this fraction of that intensity, are
+        dropped: noise, or a particle whose depth lies outside the alpha range.
+    pixel_size_mm, depth_per_alpha_mm, reference_alpha, reference_z_mm
+        A user calibration of the physical coordinates (:class:`UserCalibration`); when
+        ``pixel_size_mm`` and ``depth_per_alpha_mm`` are None the thin-lens model of the
+        exposure's metadata is used.
+    """
+
+    alpha_min: float = 0.987
+    alpha_max: float = 1.013
+    n_slices: int = 40
+    depth_range_mm: tuple[float, float] | None = None
+    aperture_fraction: float = 0.3
+    blur_sigma_px: float = 1.0
+    grid_oversample: float = 1.0
+    noise_sigmas: float | None = 3.0
+    threshold: float | None = None
+    threshold_sigma: float = 5.0
+    min_pixels: int = 2
+    link_radius_px: float = 1.5
+    max_gap: int = 1
+    min_prominence: float = 0.2
+    fit_half_width: int = 4
+    refine: bool = True
+    refine_alpha_range: float = 0.004
+    min_intensity_sigma: float = 8.0
+    max_fit_residual: float = 0.35
+    shadow_probe: float = 0.0065
+    passes: int = 2
+    maxima_half_slices: int = 2
+    merge_slices: float = 4.0
+    fit_depths: int = 17
+    fit_lateral: int = 5
+    deblend: bool = True
+    depth_prior: bool = True
+    pixel_size_mm: float | None = None
+    depth_per_alpha_mm: float | None = None
+    reference_alpha: float = 1.0
+    reference_z_mm: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.depth_range_mm is not None:
+            self.depth_range_mm = tuple(float(v) for v in self.depth_range_mm)  # type: ignore[assignment]
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise :class:`ParameterError` for a setting out of its range."""
+        if not (self.n_slices >= 3):
+            raise ParameterError(f"n_slices must be at least 3 to locate a brightness peak, got {self.n_slices}")
+        if self.depth_range_mm is None and not (0 < self.alpha_min < self.alpha_max):
+            raise ParameterError(f"need 0 < alpha_min < alpha_max, got {self.alpha_min}, {self.alpha_max}")
+        if self.depth_range_mm is not None:
+            if len(self.depth_range_mm) != 2 or not (0 < self.depth_range_mm[0] < self.depth_range_mm[1]):
+                raise ParameterError(f"depth_range_mm must be [near, far] with 0 < near < far, "
+                                     f"got {self.depth_range_mm}")
+        if self.fit_depths < 3 or self.fit_lateral < 1:
+            raise ParameterError(f"need fit_depths >= 3 and fit_lateral >= 1, got {self.fit_depths}, "
+                                 f"{self.fit_lateral}")
+        if self.merge_slices < 0 or self.maxima_half_slices < -1:
+            raise ParameterError(f"need merge_slices >= 0 and maxima_half_slices >= -1 (-1: off), "
+                                 f"got {self.merge_slices}, {self.maxima_half_slices}")
+        if not (1 <= self.passes <= 5):
+            raise ParameterError(f"passes must be 1 ... 5, got {self.passes}")
+        if not (0 < self.refine_alpha_range < 0.1):
+            raise ParameterError(f"refine_alpha_range must be in (0, 0.1), got {self.refine_alpha_range}")
+        if not (0 < self.aperture_fraction <= 1):
+            raise ParameterError(f"aperture_fraction must be in (0, 1], got {self.aperture_fraction}")
+        if self.blur_sigma_px < 0 or self.grid_oversample <= 0:
+            raise ParameterError("blur_sigma_px must be >= 0 and grid_oversample > 0")
+        if self.threshold is not None and not math.isfinite(self.threshold):
+            raise ParameterError(f"threshold must be a finite number or None, got {self.threshold}")
+        if (self.pixel_size_mm is None) != (self.depth_per_alpha_mm is None):
+            raise ParameterError("a user calibration needs both pixel_size_mm and depth_per_alpha_mm")
+        if self.pixel_size_mm is not None:
+            self.user_calibration()  # validates the numbers
+
+    def alphas(self, optics: Any = None) -> np.ndarray:
+        """The refocus parameters of the stack (ascending)."""
+        if self.depth_range_mm is not None:
+            if optics is None:
+                raise ParameterError("a depth range needs the exposure's optics to convert it to alphas")
+            return alphas_for_depth_range(self.depth_range_mm[0], self.depth_range_mm[1], self.n_slices, optics)
+        return default_alphas(self.n_slices, self.alpha_min, self.alpha_max)
+
+    def user_calibration(self) -> UserCalibration | None:
+        if self.pixel_size_mm is None or self.depth_per_alpha_mm is None:
+            return None
+        return UserCalibration(pixel_size_mm=self.pixel_size_mm, depth_per_alpha_mm=self.depth_per_alpha_mm,
+                               reference_alpha=self.reference_alpha, reference_z_mm=self.reference_z_mm)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able values; ``PipelineParams(**params.to_dict())`` restores it."""
+        out = dataclasses.asdict(self)
+        if out["depth_range_mm"] is not None:
+            out["depth_range_mm"] = list(out["depth_range_mm"])
+        return out
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> "PipelineParams":
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ParameterError(f"unknown pipeline parameter(s) {unknown}; known: {sorted(known)}")
+        return cls(**dict(values))

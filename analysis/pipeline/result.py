@@ -1,0 +1,96 @@
+"""What :func:`analysis.pipeline.process.process` returns: the particle table of one exposure,
+with everything needed to reproduce and inspect it."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from analysis.camera.image_grid import ImageGrid
+from analysis.formats.particle_table import COLUMNS, write_csv, write_hdf5
+
+from .params import PipelineParams
+
+
+@dataclass
+class Result:
+    """The particles of one exposure, with everything needed to reproduce and inspect them.
+
+    Attributes
+    ----------
+    particles : dict of str to ndarray
+        The particle table by column (:data:`COLUMNS`): ``particle`` (0..n-1), ``x, y``
+        (output-image pixels, integer values at pixel centres), ``alpha``, ``X, Y, Z`` (mm,
+        camera frame; NaN without a usable depth model), ``brightness`` (mean intensity per
+        pixel in the slice nearest ``alpha``), ``peak_height`` / ``peak_width`` (the fitted
+        brightness maximum; width in alpha), ``residual`` (RMS misfit of the forward-model fit per
+        pixel as a fraction of ``intensity``; without refinement, of the brightness-curve fit in
+        ``log B``), ``prominence`` (fraction of the curve's maximum; below 1 for the lesser
+        particles of a shadowing group), ``alpha_std`` (spread of alpha over the candidates the
+        raw pixels allow: large where one lens holds all the light) and ``intensity`` (fitted DN
+        of a lit pixel).
+    params : PipelineParams
+    alphas : ndarray of shape (n_slices,)
+    grid : ImageGrid
+        Output grid of the product images (pixels to lens-plane metres).
+    coordinates : dict
+        The physical calibration used (thin lens or user).
+    timings : dict of str to float
+        Seconds per stage.
+    warnings : list of str
+        What a user should know: nothing found, saturation, peaks outside the alpha range.
+    exposure_name, exposure_sha1, serial, white_sha1 : str or None
+    curves : ndarray of shape (n_particles, n_slices), float32
+        Each particle's brightness curve ``B(alpha)`` (NaN where not detected); particles of one
+        shadowing group share their curve.
+    stack, subaperture : ndarray or None
+        The refocused images (A, H, W) and the sub-aperture image (H, W), when kept.
+    threshold : float
+        Detection threshold applied to the product images.
+    """
+
+    particles: dict[str, np.ndarray]
+    params: PipelineParams
+    alphas: np.ndarray
+    grid: ImageGrid
+    coordinates: dict[str, Any]
+    timings: dict[str, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    exposure_name: str | None = None
+    exposure_sha1: str | None = None
+    serial: str | None = None
+    white_sha1: str | None = None
+    curves: np.ndarray | None = None
+    stack: np.ndarray | None = None
+    subaperture: np.ndarray | None = None
+    threshold: float = math.nan
+
+    def __len__(self) -> int:
+        return int(self.particles["particle"].size)
+
+    def to_columns(self) -> dict[str, list]:
+        """The particle table as plain lists, by column."""
+        return {name: self.particles[name].tolist() for name in COLUMNS}
+
+    def to_csv(self, path: str | Path) -> Path:
+        """Write the particle table as CSV (header row, one row per particle)."""
+        return write_csv(self.particles, path)
+
+    def to_hdf5(self, path: str | Path) -> Path:
+        """Write a NeXus-style HDF5 file (``/entry`` NXentry, ``/entry/data`` NXdata with the
+        columns, ``/entry/process`` NXprocess with the parameters as attributes), plus the
+        stack, sub-aperture image and curves when they were kept."""
+        return write_hdf5([self], path)
+
+    def metadata(self) -> dict[str, Any]:
+        """Provenance as JSON-able values: parameters, calibration, timings, warnings."""
+        return {"params": self.params.to_dict(), "coordinates": self.coordinates, "timings": self.timings,
+                "warnings": self.warnings, "exposure_name": self.exposure_name,
+                "exposure_sha1": self.exposure_sha1, "serial": self.serial, "white_sha1": self.white_sha1,
+                "threshold": self.threshold, "alphas": self.alphas.tolist(),
+                "grid": dataclasses.asdict(self.grid)}

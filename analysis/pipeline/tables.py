@@ -1,0 +1,83 @@
+"""The look-up tables of a calibration, from the caller's cache, from disk, or built.
+
+Two tables per calibration: the refocus's (micro-image rims left out, where neighbours' light
+leaks in) and the depth fit's (:data:`FIT_TABLE_RIM_PX`: rims kept, where a particle's light that
+splits between lenses often lands). Both are kept in the caller's :class:`analysis.cache.Cache`
+and, when it has a directory, on disk beside the calibration cache, with the refocus
+normalisations computed so far.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from analysis.cache import Cache
+from analysis.calibration.calibrate import Calibration
+from analysis.lightfield.table import (NORMALISATION, TABLE_FORMAT_VERSION, LightFieldTable, build_table, load_table,
+                                       save_table)
+
+log = logging.getLogger(__name__)
+
+#: The depth fit's table keeps the micro-image rims (half a pixel beyond the aperture's image).
+FIT_TABLE_RIM_PX = -0.5
+#: The refocus's table leaves out a pixel of rim (crosstalk from the neighbouring micro-image).
+REFOCUS_TABLE_RIM_PX = 1.0
+#: Smallest white-image value of a pixel either table uses (gaps between micro-images, dead pixels).
+MIN_WEIGHT = 0.05
+
+
+def table_cache_path(cache_dir: Path, calibration: Calibration, grid_oversample: float,
+                     rim_px: float = REFOCUS_TABLE_RIM_PX) -> Path:
+    """Where the look-up table of a calibration is kept, beside the calibration cache."""
+    serial = calibration.serial or "unknown-serial"
+    return (Path(cache_dir) / serial
+            / f"{calibration.white_sha1}.lut.v{TABLE_FORMAT_VERSION}.o{grid_oversample:g}.r{rim_px:g}.npz")
+
+
+def get_table(calibration: Calibration, cache: Cache, *, grid_oversample: float = 1.0,
+              rim_px: float = REFOCUS_TABLE_RIM_PX) -> LightFieldTable:
+    """The look-up table of a calibration: from ``cache``, else from its directory, else built.
+
+    A table built here is written to the cache's directory (when it has one);
+    :func:`save_normalisations` writes it again once the cache holds new refocus normalisations
+    for it. ``rim_px`` as in :func:`analysis.lightfield.table.build_table`.
+    """
+    key = ("table", calibration.serial, calibration.white_sha1, float(grid_oversample), float(rim_px))
+    table = cache.get(key)
+    if table is not None:
+        return table
+    path = (table_cache_path(cache.directory, calibration, grid_oversample, rim_px)
+            if cache.directory is not None else None)
+    if path is not None and path.is_file():
+        try:
+            table = load_table(path, cache=cache)
+        except Exception as exc:  # a stale or broken cache is rebuilt, never trusted
+            log.warning("look-up table cache %s unusable (%s); rebuilding it", path, exc)
+            table = None
+    if table is None or (table.height, table.width) != (calibration.model.height, calibration.model.width):
+        table = build_table(calibration, grid_oversample=grid_oversample, rim_px=rim_px, min_weight=MIN_WEIGHT)
+        if path is not None:
+            _save_quietly(table, path, cache)
+    return cache.put(key, table)
+
+
+def normalisation_keys(table: LightFieldTable, cache: Cache) -> frozenset:
+    """Which refocus normalisations ``cache`` holds for the table."""
+    return frozenset(key for key, _ in cache.entries(NORMALISATION, table.uid))
+
+
+def save_normalisations(table: LightFieldTable, calibration: Calibration, cache: Cache, *,
+                        grid_oversample: float, before: frozenset) -> None:
+    """Write the table again with its normalisations when ``cache`` holds any beyond ``before``
+    (and has a directory), so that a fresh process refocuses at full speed from its first exposure."""
+    if cache.directory is not None and normalisation_keys(table, cache) != before:
+        _save_quietly(table, table_cache_path(cache.directory, calibration, grid_oversample), cache)
+
+
+def _save_quietly(table: LightFieldTable, path: Path, cache: Cache) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        save_table(table, path, cache=cache)
+    except OSError as exc:
+        log.warning("could not write look-up table cache %s (%s); continuing without it", path, exc)
