@@ -48,8 +48,9 @@ import h5py
 import numpy as np
 
 from analysis.formats.atomic_write import atomic_path
-from analysis.formats.particle_table import UNITS
-from service.nexus import nx_group, read_table, write_process
+from analysis.formats.particle_table import (create_nx_column, decode_strings, nx_entry, nx_group, parameters_json,
+                                             read_nx_columns, set_nx_parameters, signal_column, write_nx_columns,
+                                             write_nx_process)
 
 log = logging.getLogger(__name__)
 
@@ -183,7 +184,7 @@ def read_run_table(path: Path) -> dict[str, np.ndarray]:
         If another process has it open for writing.
     """
     with _checked(path) as f:
-        return read_table(f["entry/data"])
+        return read_nx_columns(f["entry/data"])
 
 
 def read_run(path: Path) -> RunContents:
@@ -197,7 +198,7 @@ def read_run(path: Path) -> RunContents:
         If another process has it open for writing.
     """
     with _checked(path) as f:
-        return RunContents(read_table(f["entry/data"]), _read_exposures(f["entry/exposures"], 0))
+        return RunContents(read_nx_columns(f["entry/data"]), _read_exposures(f["entry/exposures"], 0))
 
 
 @contextmanager
@@ -255,25 +256,16 @@ def write_run(path: Path, run: str, contents: RunContents) -> None:
         table["frame"] = np.zeros(0, np.int64)
     counts = np.array([e["particles"] for e in exposures], dtype=np.int64)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
-        f.attrs["default"] = "entry"
-        f.attrs["creator"] = "plenodust"
-        entry = nx_group(f, "entry", "NXentry")
-        entry.attrs["default"] = "data"
-        entry["title"] = run
-        data = nx_group(entry, "data", "NXdata")
-        names = list(table)
-        data.attrs["signal"] = _signal(names)
-        data.attrs["columns"] = json.dumps(names)
-        for name in names:
-            _create_column(data, name, np.asarray(table[name]))
-        write_process(entry, exposures[-1]["parameters"] if exposures else {})
+        entry = nx_entry(f, title=run)
+        write_nx_columns(nx_group(entry, "data", "NXdata"), table, chunk_rows=ROW_CHUNK)
+        write_nx_process(entry, exposures[-1]["parameters"] if exposures else {})
         coll = nx_group(entry, "exposures", "NXcollection")
         _create(coll, "id", np.array([e["id"] for e in exposures], dtype="S40"), EXPOSURE_CHUNK)
         _create(coll, "frame", np.array([e["frame"] for e in exposures], dtype=np.int64), EXPOSURE_CHUNK)
         _create(coll, "particles", counts, EXPOSURE_CHUNK)
         _create(coll, "first_row", np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
                 if len(counts) else counts, EXPOSURE_CHUNK)
-        texts = [_json(e["parameters"]).encode() for e in exposures]
+        texts = [parameters_json(e["parameters"]).encode() for e in exposures]
         # Mostly the same text, padded: compressed in small chunks, an append recompresses one.
         _create(coll, "parameters", np.array(texts, dtype=f"S{_width(texts)}"), PARAMETER_CHUNK,
                 compression="gzip", compression_opts=1)
@@ -351,7 +343,7 @@ def _splice_in_place(path: Path, frame: int, exposure_id: str, rows: Mapping[str
         tail_exposures: list[dict] = []
         if p < k:  # not the usual next frame: the later frames are read to be written back
             try:
-                tail = _read_rows(data, book.names, cut)
+                tail = read_nx_columns(data, start=cut)
                 tail_exposures = _read_exposures(coll, p)
             except _DAMAGE as exc:
                 raise RunFileDamaged(f"{type(exc).__name__}: {exc}") from exc
@@ -367,7 +359,7 @@ def _splice_in_place(path: Path, frame: int, exposure_id: str, rows: Mapping[str
         if segment and not _fits(data, book.names, segment, cut):
             return False
         width = coll["parameters"].dtype.itemsize
-        if any(len(_json(e["parameters"]).encode()) > width for e in exposures):
+        if any(len(parameters_json(e["parameters"]).encode()) > width for e in exposures):
             return False  # longer than the column holds: a rewrite widens it
         try:
             _write_segment(f, book.names, cut, p, segment, exposures)
@@ -375,16 +367,6 @@ def _splice_in_place(path: Path, frame: int, exposure_id: str, rows: Mapping[str
             # The marker stays: the caller sees an ordinary error, and the next update rebuilds.
             raise OSError(f"writing {path} in place failed: {exc}") from exc
     return True
-
-
-def _read_rows(data: h5py.Group, names: list[str], start: int) -> dict[str, np.ndarray]:
-    out = {}
-    for name in names:
-        values = data[name][start:]
-        if values.dtype.kind == "O":
-            values = np.array([v.decode() if isinstance(v, bytes) else v for v in values], dtype=str)
-        out[name] = values
-    return out
 
 
 def _read_exposures(coll: h5py.Group, start: int) -> list[dict]:
@@ -421,11 +403,11 @@ def _write_segment(f: h5py.File, names: list[str], cut: int, p: int, segment: Ma
     for name in new:
         values = segment[name]
         dtype = np.result_type(values.dtype, np.float64) if cut else values.dtype
-        _create_column(data, name, np.full(cut, np.nan, dtype) if cut else values[:0])
+        create_nx_column(data, name, np.full(cut, np.nan, dtype) if cut else values[:0], chunk_rows=ROW_CHUNK)
     if new:
         names = names + new
         data.attrs["columns"] = json.dumps(names)
-        data.attrs["signal"] = _signal(names)
+        data.attrs["signal"] = signal_column(names)
     for name in names:
         column = data[name]
         column.resize((cut + m,))
@@ -441,23 +423,13 @@ def _write_segment(f: h5py.File, names: list[str], cut: int, p: int, segment: Ma
         coll["frame"][p:] = np.array([e["frame"] for e in exposures], dtype=np.int64)
         coll["particles"][p:] = counts
         coll["first_row"][p:] = cut + np.concatenate([[0], np.cumsum(counts)[:-1]])
-        coll["parameters"][p:] = np.array([_json(e["parameters"]).encode() for e in exposures],
+        coll["parameters"][p:] = np.array([parameters_json(e["parameters"]).encode() for e in exposures],
                                           dtype=coll["parameters"].dtype)
-    last = _decode(coll["parameters"][count - 1]) if count else _json({})
-    process = f["entry/process/parameters"]
-    if _decode(process[()]) != last:  # as a rule unchanged within a run: skip the write
-        process[()] = last
+    # As a rule unchanged within a run, and then not rewritten.
+    set_nx_parameters(f["entry/process"], json.loads(decode_strings(coll["parameters"][count - 1])) if count else {})
 
 
 # -- helpers -----------------------------------------------------------------------------
-
-
-def _signal(names: list[str]) -> str:
-    return "Z" if "Z" in names else (names[0] if names else "")
-
-
-def _json(parameters: dict) -> str:
-    return json.dumps(parameters, sort_keys=True, default=str)
 
 
 def _width(texts: list[bytes]) -> int:
@@ -465,15 +437,6 @@ def _width(texts: list[bytes]) -> int:
     4 KiB heap block on every append (HDF5 does not reuse heap blocks across opens)."""
     longest = max((len(t) for t in texts), default=0)
     return max(256, 1 << (longest + longest // 4).bit_length())
-
-
-def _create_column(group: h5py.Group, name: str, data: np.ndarray) -> None:
-    if data.dtype.kind == "U":
-        ds = _create(group, name, data.astype(object), ROW_CHUNK, dtype=h5py.string_dtype())
-    else:
-        ds = _create(group, name, data, ROW_CHUNK, fillvalue=np.nan if data.dtype.kind == "f" else None)
-    if name in UNITS:
-        ds.attrs["units"] = UNITS[name]
 
 
 def _create(group: h5py.Group, name: str, data: np.ndarray, chunk: int, **kwargs) -> h5py.Dataset:
@@ -523,10 +486,6 @@ def _readable(path: Path) -> bool:
         return True
     except (RunFileDamaged, *_DAMAGE):
         return False
-
-
-def _decode(value: bytes | str) -> str:
-    return value.decode() if isinstance(value, bytes) else value
 
 
 def _warn_rebuild(path: Path, why: str) -> None:

@@ -37,7 +37,8 @@ import numpy as np
 from analysis.formats.atomic_write import atomic_path, write_all_atomic
 from service import run_file
 from service.database import Database
-from service.nexus import nx_group, read_table, write_process, write_table
+from analysis.formats.particle_table import (decode_strings, nx_entry, nx_group, read_nx_columns,
+                                             write_nx_columns, write_nx_process)
 from service.results import JobOutput
 
 log = logging.getLogger(__name__)
@@ -130,15 +131,11 @@ class Store:
 
         def write(tmp: Path) -> None:
             with h5py.File(tmp, "w") as f:
-                f.attrs["default"] = "entry"
-                f.attrs["creator"] = "plenodust"
-                entry = nx_group(f, "entry", "NXentry")
-                entry.attrs["default"] = "data"
-                entry["title"] = record.id
+                entry = nx_entry(f, title=record.id)
                 entry["run"] = record.run
                 entry["frame"] = record.frame
-                write_table(nx_group(entry, "data", "NXdata"), output.columns)
-                write_process(entry, output.parameters)
+                write_nx_columns(nx_group(entry, "data", "NXdata"), output.columns)
+                write_nx_process(entry, output.parameters)
                 if "provenance" in output.extra:
                     entry["process"]["provenance"] = json.dumps(output.extra["provenance"], default=str)
                 if output.curves is not None and output.curve_alpha is not None:
@@ -176,18 +173,18 @@ class Store:
     def read_columns(self, exposure_id: str) -> dict[str, np.ndarray]:
         """The particle table of one exposure."""
         with h5py.File(self.result_path(exposure_id), "r") as f:
-            return read_table(f["entry/data"])
+            return read_nx_columns(f["entry/data"])
 
     def read_parameters(self, exposure_id: str) -> dict:
         with h5py.File(self.result_path(exposure_id), "r") as f:
-            return json.loads(f["entry/process/parameters"][()].decode())
+            return json.loads(decode_strings(f["entry/process/parameters"][()]))
 
     def read_provenance(self, exposure_id: str) -> dict:
         """Timings, warnings, calibration used: what the pipeline reported beside the table."""
         with h5py.File(self.result_path(exposure_id), "r") as f:
             if "entry/process/provenance" not in f:
                 return {}
-            return json.loads(f["entry/process/provenance"][()].decode())
+            return json.loads(decode_strings(f["entry/process/provenance"][()]))
 
     def read_curves(self, exposure_id: str) -> tuple[np.ndarray, np.ndarray] | None:
         """``(alpha, brightness)`` of shape (A,), (N, A), or None if not kept."""

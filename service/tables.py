@@ -2,18 +2,15 @@
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from typing import Literal
 
-import h5py
 import numpy as np
 from fastapi import Request
 from fastapi.responses import JSONResponse, Response
 
+from analysis.formats.particle_table import csv_text, table_h5_bytes
 from service.problems import Problem
-from service.nexus import nx_group, write_table
 
 TableFormat = Literal["json", "csv", "h5"]
 MEDIA_TYPES = {"json": "application/json", "csv": "text/csv; charset=utf-8", "h5": "application/x-hdf5"}
@@ -63,37 +60,13 @@ def columns_json(columns: dict[str, np.ndarray]) -> dict[str, list]:
     return {name: [_json_value(v) for v in np.asarray(col).tolist()] for name, col in columns.items()}
 
 
-def table_csv(columns: dict[str, np.ndarray]) -> str:
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    names = list(columns)
-    writer.writerow(names)
-    lists = [np.asarray(columns[n]).tolist() for n in names]
-    for row in zip(*lists, strict=True):
-        writer.writerow(["" if isinstance(v, float) and not math.isfinite(v) else
-                         (repr(v) if isinstance(v, float) else v) for v in row])
-    return buf.getvalue()
-
-
-def table_h5(columns: dict[str, np.ndarray], *, title: str) -> bytes:
-    """A small NeXus file (``/entry/data``) holding just the table."""
-    buf = io.BytesIO()
-    with h5py.File(buf, "w") as f:
-        f.attrs["default"] = "entry"
-        entry = nx_group(f, "entry", "NXentry")
-        entry.attrs["default"] = "data"
-        entry["title"] = title
-        write_table(nx_group(entry, "data", "NXdata"), columns)
-    return buf.getvalue()
-
-
 def table_response(columns: dict[str, np.ndarray], fmt: str, *, meta: dict, filename: str) -> Response:
     """The table in ``fmt``; ``meta`` goes into the JSON body beside the columns."""
     if fmt == "csv":
-        return Response(table_csv(columns), media_type=MEDIA_TYPES["csv"],
+        return Response(csv_text(columns), media_type=MEDIA_TYPES["csv"],
                         headers={"Content-Disposition": f'inline; filename="{filename}.csv"'})
     if fmt == "h5":
-        return Response(table_h5(columns, title=filename), media_type=MEDIA_TYPES["h5"],
+        return Response(table_h5_bytes(columns, title=filename), media_type=MEDIA_TYPES["h5"],
                         headers={"Content-Disposition": f'attachment; filename="{filename}.h5"'})
     count = len(next(iter(columns.values()))) if columns else 0
     return JSONResponse({**meta, "count": count, "columns": columns_json(columns)})

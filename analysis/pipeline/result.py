@@ -7,12 +7,12 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
 from analysis.camera.image_grid import ImageGrid
-from analysis.formats.particle_table import COLUMNS, write_csv, write_hdf5
+from analysis.formats.particle_table import COLUMNS, combine, write_csv, write_hdf5
 
 from .params import PipelineParams
 
@@ -85,7 +85,12 @@ class Result:
         """Write a NeXus-style HDF5 file (``/entry`` NXentry, ``/entry/data`` NXdata with the
         columns, ``/entry/process`` NXprocess with the parameters as attributes), plus the
         stack, sub-aperture image and curves when they were kept."""
-        return write_hdf5([self], path)
+        return write_results_hdf5([self], path)
+
+    def nexus_frame(self) -> dict[str, Any]:
+        """This exposure's extras for :func:`analysis.formats.particle_table.write_hdf5`."""
+        return {"metadata": self.metadata(), "alpha": self.alphas, "curves": self.curves, "stack": self.stack,
+                "subaperture": self.subaperture}
 
     def metadata(self) -> dict[str, Any]:
         """Provenance as JSON-able values: parameters, calibration, timings, warnings."""
@@ -94,3 +99,11 @@ class Result:
                 "exposure_sha1": self.exposure_sha1, "serial": self.serial, "white_sha1": self.white_sha1,
                 "threshold": self.threshold, "alphas": self.alphas.tolist(),
                 "grid": dataclasses.asdict(self.grid)}
+
+
+def write_results_hdf5(results: Sequence[Result], path: str | Path) -> Path:
+    """One NeXus file of one exposure's particles, or a batch's (with a ``frame`` column), with each
+    exposure's provenance, curves and, when kept, stack and sub-aperture image."""
+    columns = dict(results[0].particles) if len(results) == 1 else combine(r.particles for r in results)
+    return write_hdf5(path, columns, parameters=results[0].params.to_dict() if results else {},
+                      frames=[r.nexus_frame() for r in results])

@@ -148,7 +148,8 @@ class _Calibrations:
 def run(args: argparse.Namespace) -> int:
     from analysis.cache import Cache
     from analysis.formats.exposure import read_exposure
-    from analysis.formats.particle_table import combine, write_csv, write_hdf5
+    from analysis.formats.particle_table import combine, write_csv
+    from analysis.pipeline.result import write_results_hdf5
     from analysis.pipeline.process import process
 
     try:
@@ -214,11 +215,11 @@ def run(args: argparse.Namespace) -> int:
         if len(results) == 1:
             _write_one(results[0], out, save_stack=args.save_stack)
         elif out.suffix.lower() == ".csv":
-            write_csv(combine(results), out)
+            write_csv(combine(r.particles for r in results), out)
             if args.save_stack:
-                write_hdf5(results, _stack_path(out))
+                write_results_hdf5(results, _stack_path(out))
         else:
-            write_hdf5(results, out)
+            write_results_hdf5(results, out)
     json.dump({"out": str(out), "exposures": summary}, sys.stdout, indent=2)
     sys.stdout.write("\n")
     return EXIT_FAILED if failed else EXIT_OK
