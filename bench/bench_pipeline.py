@@ -158,7 +158,9 @@ def main() -> int:
             print(f"  done {scenario} seed {seed}: {r['score'].n_matched}/{r['score'].n_true} matched, "
                   f"{r['wall_s']:.3f} s", flush=True)
 
-    print(f"\nsensor {args.size} px, {params.n_slices} slices over alpha {params.alpha_min} ... {params.alpha_max}; "
+    span = (f"alpha {params.alpha_min} ... {params.alpha_max}" if params.alpha_min is not None
+            else "the alpha range found from each exposure")
+    print(f"\nsensor {args.size} px, {params.n_slices} slices over {span}; "
           f"errors in % of the mean 3D nearest-neighbour distance (NN)\n")
     head = (f"{'scenario':13s} {'seed':>4s} {'true':>5s} {'found':>5s} {'recall':>7s} {'precis':>7s} "
             f"{'depth':>7s} {'|dZ|':>7s} {'lateral':>7s} {'pairs':>6s} {'1-lens':>6s} {'floor':>6s}")

@@ -89,7 +89,8 @@ def test_csv_and_hdf5_round_trip(layer_result, tmp_path):
         assert f["entry/data"].attrs["NX_class"] == "NXdata" and f["entry/data"].attrs["signal"] == "Z"
         assert f["entry/data/Z"].attrs["units"] == "mm"
         assert f["entry/process"].attrs["n_slices"] == 40
-        assert json.loads(f["entry/process/parameters"][()])["alpha_min"] == 0.987
+        assert json.loads(f["entry/process/parameters"][()])["alpha_min"] is None   # found from the exposure
+        assert f["entry/process"].attrs["alpha_min"] == "none"
         assert f["entry/frames/0/stack"].shape == r.stack.shape
         assert f["entry/frames/0/curves"].shape == r.curves.shape
     h5 = read_hdf5_columns(path)
@@ -174,19 +175,26 @@ def test_shadowing_pairs_become_two_particles(tmp_path):
 
 
 def test_saved_table_carries_every_new_normalisation(layer, tmp_path):
-    """Each new alpha set's normalisation reaches the disk with the table, so a fresh process starts fast."""
+    """Each new alpha's normalisation reaches the disk with the table, so a fresh process starts fast."""
+    from analysis.lightfield.refocus import refocus_stack
     from analysis.lightfield.table import load_table
     from analysis.pipeline.tables import get_table, normalisation_keys, table_cache_path
 
     _, exposure, calibration, _, _, _ = layer
     cache = Cache(directory=tmp_path / "cache")
     for n in (5, 6, 7):
-        process(exposure, calibration, PipelineParams(n_slices=n, refine=False), cache=cache)
+        process(exposure, calibration, PipelineParams(alpha_min=0.99, alpha_max=1.01, n_slices=n, refine=False),
+                cache=cache)
     table = get_table(calibration, cache)
     fresh = Cache()
     saved = load_table(table_cache_path(cache.directory, calibration, 1.0), cache=fresh)
-    assert len(normalisation_keys(table, cache)) == 4   # three stacks and the sub-aperture image
+    # Slice by slice: 5 + 6 + 7 alphas, 0.99 and 1.01 in each and 1.0 in two, plus the sub-aperture image.
+    assert len(normalisation_keys(table, cache)) == 5 + 6 + 7 - 2 * 2 - 1 + 1
     assert normalisation_keys(saved, fresh) == normalisation_keys(table, cache)
+    alphas = np.linspace(0.99, 1.01, 6)
+    np.testing.assert_array_equal(refocus_stack(exposure.image, saved, alphas, cache=fresh),
+                                  refocus_stack(exposure.image, table, alphas))
+    assert normalisation_keys(saved, fresh) == normalisation_keys(table, cache)   # nothing recomputed
 
 
 def test_depth_prior_beats_what_the_pixels_alone_allow(tmp_path):

@@ -245,9 +245,10 @@ def replace_fits(grid: ImageGrid, peaks: Peaks, fit: RayFit, rows: np.ndarray, n
     return moved(grid, peaks, merged), merged
 
 
-def inside(peaks: Peaks, fit: RayFit, alphas: np.ndarray) -> tuple[Peaks, RayFit]:
-    """Drop fits that left the stack's alpha range: they found a particle of another range."""
-    keep = np.flatnonzero((peaks.alpha >= alphas[0]) & (peaks.alpha <= alphas[-1]))
+def inside(peaks: Peaks, fit: RayFit, limits: tuple[float, float]) -> tuple[Peaks, RayFit]:
+    """Drop fits that left the alpha range ``(lo, hi)`` (the user's, or the survey's): they found a
+    particle of another range."""
+    keep = np.flatnonzero((peaks.alpha >= limits[0]) & (peaks.alpha <= limits[1]))
     if keep.size < len(peaks):
         return peaks.take(keep), fit.take(keep)
     return peaks, fit

@@ -64,6 +64,9 @@ __all__ = ["ImageGrid", "Samples", "default_alphas", "alphas_for_depth_range", "
 DEFAULT_MIN_COVERAGE = 0.25
 METHODS = ("auto", "bilinear", "triangles")
 DEFAULT_METHOD = "auto"
+# Normalisations are splatted in bands laid out for shifts of a blur this many lens pitches wide
+# (wider than any stack the pipeline refocuses), whatever alphas are computed together.
+NORMALISATION_REACH_PITCHES = 16.0
 # Below this many DN the noise estimate is taken as quantisation-limited.
 _MIN_SIGMA_DN = 0.5
 # Histogram for the robust background and noise: 1/8 DN bins over -512 ... 4096 DN.
@@ -258,7 +261,7 @@ def _targets(table: LightFieldTable, method: str, grid: ImageGrid, cache: Cache)
 
 
 def _band_starts(table: LightFieldTable, ids: np.ndarray, coeffs: np.ndarray, method: str,
-                 grid: ImageGrid, cache: Cache) -> np.ndarray:
+                 grid: ImageGrid, cache: Cache, min_reach_coeff: float = 0.0) -> np.ndarray:
     """Cut samples (ordered by lens row) into bands of lens rows that threads may splat in turn.
 
     Band ``b`` writes target rows from its lenses' lowest row minus ``reach`` to their highest
@@ -266,7 +269,7 @@ def _band_starts(table: LightFieldTable, ids: np.ndarray, coeffs: np.ndarray, me
     kernels), and about 8 per thread so that clustered particles still share out.
     """
     target_row, shift_per_coeff, _ = _targets(table, method, grid, cache)
-    reach = int(np.ceil(shift_per_coeff * float(np.abs(coeffs).max()))) + 1
+    reach = int(np.ceil(shift_per_coeff * max(float(np.abs(coeffs).max()), min_reach_coeff))) + 1
     key = ("refocus", table.uid, "bands", method, _grid_key(grid) if method == "bilinear" else b"", reach,
            numba.get_num_threads())
     edges = cache.get(key)
@@ -296,13 +299,14 @@ def _band_starts(table: LightFieldTable, ids: np.ndarray, coeffs: np.ndarray, me
 
 
 def _refocus_into(table: LightFieldTable, ids: np.ndarray, values: np.ndarray, coeffs: np.ndarray, method: str,
-                  grid: ImageGrid, scale: np.ndarray | None, out: np.ndarray, cache: Cache) -> np.ndarray:
+                  grid: ImageGrid, scale: np.ndarray | None, out: np.ndarray, cache: Cache,
+                  min_reach_coeff: float = 0.0) -> np.ndarray:
     """Splat samples and write the slices (n_alpha, height, width) into ``out``.
 
     ``scale`` is the normalisation (see :func:`normalisation`); ``None`` leaves the raw sums,
     in the method's own layout (bilinear: ``out`` itself; triangles: returned site sums).
     """
-    bands = _band_starts(table, ids, coeffs, method, grid, cache)
+    bands = _band_starts(table, ids, coeffs, method, grid, cache, min_reach_coeff)
     if method == "bilinear":
         lens_px = _lens_pixels(table, grid, cache)
         kern.splat_bilinear(ids, values, table.lens, lens_px, table.u_m, table.v_m, 1.0 / grid.step_m,
@@ -345,8 +349,9 @@ def normalisation(table: LightFieldTable, alphas: np.ndarray, *, method: str = D
                   min_coverage: float = DEFAULT_MIN_COVERAGE, cache: Cache | None = None) -> np.ndarray:
     """Inverse of the light each lens site (or output pixel) can receive at each alpha.
 
-    Computed once per table, method, grid and alphas (all samples, about a second full size)
-    and kept in ``cache`` (:func:`analysis.lightfield.table.save_table` writes it with the table).
+    Computed once per table, method, grid and alpha (all samples, about a second full size for 40
+    alphas) and kept in ``cache`` slice by slice, so that stacks over overlapping alpha ranges
+    share them (:func:`analysis.lightfield.table.save_table` writes them with the table).
 
     Returns
     -------
@@ -359,29 +364,41 @@ def normalisation(table: LightFieldTable, alphas: np.ndarray, *, method: str = D
     cache = Cache() if cache is None else cache
     method = _resolve_method(method, table, grid)
     coeffs = _coeffs(alphas)
-    key = (NORMALISATION, table.uid, coeffs.tobytes() + np.float32(min_coverage).tobytes() + key_extra
-           + method.encode() + (_grid_key(grid) if method == "bilinear" else b""))
-    cached = cache.get(key)
-    if cached is not None:
-        return cached
+    tail = (np.float32(min_coverage).tobytes() + key_extra + method.encode()
+            + (_grid_key(grid) if method == "bilinear" else b""))
+    keys = [(NORMALISATION, table.uid, c.tobytes() + tail) for c in coeffs]
+    slices = [cache.get(key) for key in keys]
+    missing = [a for a, got in enumerate(slices) if got is None]
+    if missing:
+        for a, inv in zip(missing, _inverse_coverage(table, coeffs[missing], method, grid, keep, min_coverage, cache)):
+            slices[a] = cache.put(keys[a], inv)
+    return np.stack(slices, axis=0 if method == "bilinear" else 1)
+
+
+def _inverse_coverage(table: LightFieldTable, coeffs: np.ndarray, method: str, grid: ImageGrid,
+                      keep: np.ndarray | None, min_coverage: float, cache: Cache) -> list[np.ndarray]:
+    """One inverse-coverage slice per coefficient (see :func:`normalisation`)."""
     ids = np.arange(table.n_samples, dtype=np.int32) if keep is None else np.flatnonzero(keep).astype(np.int32)
+    # One band layout whatever the alphas computed together, so that a slice's sums run in the same
+    # order and come out the same to the last bit, whichever stacks were refocused before.
+    pitch = float(np.hypot(*table.basis_m[:, 0]))
+    reach = NORMALISATION_REACH_PITCHES * pitch / table.aperture_radius_m
     if method == "bilinear":
         den = np.empty((coeffs.size, grid.height, grid.width), dtype=np.float32)
-        _refocus_into(table, ids, table.weight[ids], coeffs, method, grid, None, den, cache)
-        per_alpha = den.reshape(coeffs.size, -1)          # one row per alpha
+        _refocus_into(table, ids, table.weight[ids], coeffs, method, grid, None, den, cache, reach)
+        per_alpha = list(den)
     else:
-        den = _refocus_into(table, ids, table.weight[ids], coeffs, method, grid, None, None, cache)
-        per_alpha = den.T                                 # view: one row per alpha
-    inv = np.zeros_like(den)
-    inv_per_alpha = inv.reshape(coeffs.size, -1) if method == "bilinear" else inv.T
-    for a in range(coeffs.size):
-        d = per_alpha[a]
+        den = _refocus_into(table, ids, table.weight[ids], coeffs, method, grid, None, None, cache, reach)
+        per_alpha = list(den.T)
+    out = []
+    for d in per_alpha:
+        inv = np.zeros(d.shape, dtype=np.float32)
         positive = d[d > 0]
-        if positive.size == 0:
-            continue
-        enough = d >= min_coverage * float(np.median(positive))
-        inv_per_alpha[a, enough] = 1.0 / d[enough]
-    return cache.put(key, inv)
+        if positive.size:
+            enough = d >= min_coverage * float(np.median(positive))
+            inv[enough] = 1.0 / d[enough]
+        out.append(inv)
+    return out
 
 
 def prepare_normalisations(table: LightFieldTable, alphas: np.ndarray | None = None, *, cache: Cache,

@@ -21,7 +21,10 @@ class PipelineParams:
     Attributes
     ----------
     alpha_min, alpha_max, n_slices
-        Refocus parameters of the stack (the paper: 40 over 0.987 ... 1.013).
+        Refocus parameters of the stack (the paper: 40 over 0.987 ... 1.013). ``alpha_min`` and
+        ``alpha_max`` None (the default): the range that holds the exposure's particles, found by
+        a survey (:mod:`analysis.pipeline.depth_range`), at ``n_slices`` slices per 0.026 of alpha
+        (and at least ``n_slices``).
     depth_range_mm : [near, far] or None
         Derive the alpha range from a depth range with the thin-lens model instead.
     aperture_fraction, blur_sigma_px
@@ -81,8 +84,8 @@ class PipelineParams:
         exposure's metadata is used.
     """
 
-    alpha_min: float = 0.987
-    alpha_max: float = 1.013
+    alpha_min: float | None = None
+    alpha_max: float | None = None
     n_slices: int = 40
     depth_range_mm: tuple[float, float] | None = None
     aperture_fraction: float = 0.3
@@ -122,8 +125,13 @@ class PipelineParams:
         """Raise :class:`ParameterError` for a setting out of its range."""
         if not (self.n_slices >= 3):
             raise ParameterError(f"n_slices must be at least 3 to locate a brightness peak, got {self.n_slices}")
-        if self.depth_range_mm is None and not (0 < self.alpha_min < self.alpha_max):
+        if (self.alpha_min is None) != (self.alpha_max is None):
+            raise ParameterError("give both alpha_min and alpha_max, or neither (the range is then found from "
+                                 "the exposure)")
+        if self.alpha_min is not None and not (0 < self.alpha_min < self.alpha_max):
             raise ParameterError(f"need 0 < alpha_min < alpha_max, got {self.alpha_min}, {self.alpha_max}")
+        if self.depth_range_mm is not None and self.alpha_min is not None:
+            raise ParameterError("give an alpha range or a depth range, not both")
         if self.depth_range_mm is not None:
             if len(self.depth_range_mm) != 2 or not (0 < self.depth_range_mm[0] < self.depth_range_mm[1]):
                 raise ParameterError(f"depth_range_mm must be [near, far] with 0 < near < far, "
@@ -149,12 +157,20 @@ class PipelineParams:
         if self.pixel_size_mm is not None:
             self.user_calibration()  # validates the numbers
 
-    def alphas(self, optics: Any = None) -> np.ndarray:
-        """The refocus parameters of the stack (ascending)."""
+    @property
+    def user_range(self) -> bool:
+        """Whether the user gave the refocus range (else the pipeline finds it)."""
+        return self.depth_range_mm is not None or self.alpha_min is not None
+
+    def alphas(self, optics: Any = None) -> np.ndarray | None:
+        """The refocus parameters of the stack (ascending) that the user asked for; None when the
+        pipeline is to find the range from the exposure."""
         if self.depth_range_mm is not None:
             if optics is None:
                 raise ParameterError("a depth range needs the exposure's optics to convert it to alphas")
             return alphas_for_depth_range(self.depth_range_mm[0], self.depth_range_mm[1], self.n_slices, optics)
+        if self.alpha_min is None:
+            return None
         return default_alphas(self.n_slices, self.alpha_min, self.alpha_max)
 
     def user_calibration(self) -> UserCalibration | None:

@@ -61,6 +61,7 @@ from analysis.lightfield.refocus import default_alphas, products, refocus_stack,
 from analysis.lightfield.table import LightFieldTable
 
 from .candidates import locate, product_threshold
+from .depth_range import edge_maxima, main_peaks, range_of_peaks, survey_alphas
 from .params import PipelineParams
 from .result import Result
 from .stages import Progress, StageClock
@@ -123,7 +124,6 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     check_same_camera(exposure, calibration)
     model = CameraModel.from_metadata(exposure.metadata)
     optics = model.optics
-    alphas = params.alphas(optics)
     if coordinates is None:
         coordinates = params.user_calibration() or ThinLensCalibration(optics)
 
@@ -131,6 +131,9 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         table = get_table(calibration, cache, grid_oversample=params.grid_oversample)
     norms_before = normalisation_keys(table, cache)
     grid = table.grid
+    alphas = params.alphas(optics)
+    if alphas is None:
+        alphas = survey_alphas(table)  # until the survey has found the range
 
     def finish(peaks: Peaks, tracks: Tracks | None, stack: np.ndarray | None, sub: np.ndarray | None,
                threshold: float, fit: RayFit | None = None) -> Result:
@@ -154,16 +157,31 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
 
     with clock.stage("samples"):
         samples = select_samples(exposure.image, table, noise_sigmas=params.noise_sigmas)
-    with clock.stage("refocus"):
-        stack = refocus_stack(exposure.image, table, alphas, grid=grid, samples=samples, cache=cache)
+        threshold = product_threshold(samples.sigma, params)
     with clock.stage("subaperture"):
         sub = subaperture_image(exposure.image, table, fraction=params.aperture_fraction,
                                 blur_sigma_px=params.blur_sigma_px, grid=grid, samples=samples, cache=cache)
+    if not params.user_range:
+        with clock.stage("survey"):
+            found = _survey(exposure.image, table, samples, sub, alphas, params, threshold, cache)
+        if found is None:
+            warnings.append(f"no particles found above the noise anywhere in alpha {alphas[0]:.4f} ... "
+                            f"{alphas[-1]:.4f}; check the exposure and the threshold")
+            return finish(_no_peaks(), None, None, sub, threshold)
+        limits, alphas = (alphas[0], alphas[-1]), found
+    else:
+        limits = (alphas[0], alphas[-1])
+    with clock.stage("refocus"):
+        stack = refocus_stack(exposure.image, table, alphas, grid=grid, samples=samples, cache=cache)
     with clock.stage("products"):
         product = products(stack, sub, out=None if keep_stack else stack)
-        threshold = product_threshold(samples.sigma, params)
 
     peaks, tracks = locate(product, alphas, params, threshold=threshold, clock=clock)
+    low, high = edge_maxima(tracks.brightness)
+    if params.user_range and low + high:
+        warnings.append(f"{low + high} particle(s) look brightest at the edge of the alpha range "
+                        f"{alphas[0]:.4f} ... {alphas[-1]:.4f} ({low} at its start, {high} at its end) and may "
+                        "lie outside it: widen the range, or leave it out so the pipeline finds it")
     fit = None
     if params.refine and len(peaks):
         fitter = RayFitter(
@@ -176,10 +194,10 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
             max_residual=params.max_fit_residual, merge_radius_px=params.link_radius_px,
             merge_alpha=params.merge_slices * float(alphas[1] - alphas[0]), cache=cache)
         with clock.stage("refine"):
-            peaks, fit = inside(*refine_peaks(fitter, peaks, shadow_probe=params.shadow_probe), alphas)
+            peaks, fit = inside(*refine_peaks(fitter, peaks, shadow_probe=params.shadow_probe), limits)
         with clock.stage("more_passes"):
             for _ in range(params.passes - 1):
-                found = _look_again(fitter, table, params, alphas, threshold, peaks, tracks, fit)
+                found = _look_again(fitter, table, params, alphas, limits, threshold, peaks, tracks, fit)
                 if found is None:
                     break
                 peaks, tracks, fit = found
@@ -201,8 +219,22 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     return finish(peaks, tracks, stack, sub, threshold, fit)
 
 
+def _survey(image: np.ndarray, table: LightFieldTable, samples, sub: np.ndarray, survey: np.ndarray,
+            params: PipelineParams, threshold: float, cache: Cache) -> np.ndarray | None:
+    """The fine stack's alphas from a coarse stack over the whole range (``survey``); None when it
+    shows no particle."""
+    stack = refocus_stack(image, table, survey, grid=table.grid, samples=samples, cache=cache)
+    coarse = dataclasses.replace(params, maxima_half_slices=-1)  # the range, not every particle
+    peaks, _ = locate(products(stack, sub, out=stack), survey, coarse, threshold=threshold)
+    peaks = peaks.take(np.flatnonzero(main_peaks(peaks.x, peaks.y, peaks.peak_height)))
+    log.debug("survey: %d peaks over alpha %.4f ... %.4f", len(peaks), survey[0], survey[-1])
+    # Room for the particles hidden behind those seen (found by probes and the second pass).
+    return range_of_peaks(peaks.alpha, survey, n_slices=params.n_slices, margin=params.shadow_probe)
+
+
 def _look_again(fitter: RayFitter, table: LightFieldTable, params: PipelineParams, alphas: np.ndarray,
-                threshold: float, peaks: Peaks, tracks: Tracks, fit: RayFit) -> tuple[Peaks, Tracks, RayFit] | None:
+                limits: tuple[float, float], threshold: float, peaks: Peaks, tracks: Tracks, fit: RayFit
+                ) -> tuple[Peaks, Tracks, RayFit] | None:
     """One more detection pass on the raw image with the found particles' light taken off.
 
     Crowded clusters: blobs of neighbours merge in the product images. Returns the particles with
@@ -221,7 +253,7 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, params: PipelineParam
     log.debug("another pass: %d candidates", len(new))
     if len(new) == 0:
         return None
-    new, new_fit = inside(*refine_peaks(fitter, new, subtract=explained), alphas)
+    new, new_fit = inside(*refine_peaks(fitter, new, subtract=explained), limits)
     # As for hidden particles: a new one must fit well and be about as bright as the others.
     good = np.flatnonzero((new_fit.residual <= PROBE_RESIDUAL)
                           & (new_fit.intensity >= PROBE_FRACTION * np.median(fit.intensity)))

@@ -64,9 +64,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
     g = p.add_argument_group("refocus")
-    g.add_argument("--alpha-min", type=float, default=d.alpha_min, help=f"default {d.alpha_min}")
-    g.add_argument("--alpha-max", type=float, default=d.alpha_max, help=f"default {d.alpha_max}")
-    g.add_argument("--slices", type=int, default=d.n_slices, help=f"refocused images (default {d.n_slices})")
+    g.add_argument("--alpha-min", type=float, default=None,
+                   help="refocus range, with --alpha-max (default: the range that holds the exposure's particles, "
+                        "found from the exposure)")
+    g.add_argument("--alpha-max", type=float, default=None, help="see --alpha-min")
+    g.add_argument("--slices", type=int, default=d.n_slices,
+                   help=f"refocused images (default {d.n_slices}); for a range found from the exposure, images per "
+                        "0.026 of alpha, and at least this many")
     g.add_argument("--depth-range", type=float, nargs=2, metavar=("NEAR_MM", "FAR_MM"), default=None,
                    help="derive the alpha range from depths (thin-lens model) instead")
     g.add_argument("--aperture-fraction", type=float, default=d.aperture_fraction,

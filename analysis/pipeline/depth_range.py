@@ -1,0 +1,94 @@
+"""The refocus range of an exposure: the one its particles need, found from the exposure itself.
+
+A fixed alpha range silently loses every particle outside it. By default the pipeline first looks
+over the whole range in which a particle still images onto a handful of lenses (a blur of up to
+:data:`SURVEY_BLUR_PITCHES` lens pitches either side of focus), coarsely, and then refocuses
+finely over the range that holds the brightness peaks it saw. A range the user gives wins; then
+the particles seen at its edges are reported instead.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from analysis.lightfield.table import LightFieldTable
+
+#: The survey looks as far from focus as a blur of this many lens pitches (radius on the MLA):
+#: beyond it a particle's light spreads over hundreds of lenses, a few DN each.
+SURVEY_BLUR_PITCHES = 12.0
+#: Slices of the survey: about two per width of a brightness peak (a blur change of a pitch).
+SURVEY_SLICES = 48
+#: The found range is widened by this many survey steps either side (a peak's half width) ...
+SURVEY_MARGIN_STEPS = 2.0
+#: ... and is at least this wide in alpha: the paper's 0.987 ... 1.013, which the stack covers
+#: with ``n_slices`` slices (a compact cluster gets the step the pipeline's thresholds were set
+#: with; a wider range gets more slices of that step).
+MIN_RANGE = 0.026
+#: The fine stack's alphas lie on one lattice, ``ANCHOR + k * step`` (the paper's 0.987 ... 1.013
+#: among them), so that stacks of different exposures share the refocus normalisations of their
+#: slices (each costs about 25 ms full size to work out).
+ANCHOR = 0.987
+
+
+def survey_alphas(table: LightFieldTable, *, blur_pitches: float = SURVEY_BLUR_PITCHES,
+                  n: int = SURVEY_SLICES) -> np.ndarray:
+    """Alphas evenly spaced over the range where a particle's blur radius stays below
+    ``blur_pitches`` lens pitches, in front of focus and behind it."""
+    pitch = float(np.hypot(*table.basis_m[:, 0]))
+    c_max = min(blur_pitches * pitch / table.aperture_radius_m, 0.5)  # c = 1 - 1/alpha
+    return np.linspace(1.0 / (1.0 + c_max), 1.0 / (1.0 - c_max), n)
+
+
+def main_peaks(x: np.ndarray, y: np.ndarray, height: np.ndarray, *, radius_px: float = 3.0,
+               ratio: float = 2.0) -> np.ndarray:
+    """Peaks (a mask) with no peak more than ``ratio`` times higher within ``radius_px``.
+
+    At the survey's coarse steps, lesser maxima on a bright particle's line of sight are mostly
+    its ghosts, where the shifted lattice of samples happens to line up again far from focus (a
+    few % of the particle's peak); hidden partners are found later from the particles, not from
+    the survey.
+    """
+    xy = np.column_stack([np.asarray(x, float), np.asarray(y, float)])
+    height = np.asarray(height, dtype=np.float64)
+    keep = np.ones(height.size, dtype=bool)
+    if height.size < 2:
+        return keep
+    for i, near in enumerate(cKDTree(xy).query_ball_point(xy, r=radius_px)):
+        keep[i] = not np.any(height[near] > ratio * height[i])
+    return keep
+
+
+def range_of_peaks(peak_alpha: np.ndarray, survey: np.ndarray, *, n_slices: int,
+                   margin: float = 0.0) -> np.ndarray | None:
+    """The fine stack's alphas: the span of the survey's peaks, widened by a margin
+    (:data:`SURVEY_MARGIN_STEPS` survey steps plus ``margin``) and to at least :data:`MIN_RANGE`,
+    within the survey, on the lattice of ``MIN_RANGE / (n_slices - 1)`` steps; None when the
+    survey saw no peak."""
+    peak_alpha = np.asarray(peak_alpha, dtype=np.float64)
+    peak_alpha = peak_alpha[np.isfinite(peak_alpha)]
+    if peak_alpha.size == 0:
+        return None
+    step = MIN_RANGE / (n_slices - 1)
+    margin += SURVEY_MARGIN_STEPS * float(survey[1] - survey[0])
+    lo = max(float(peak_alpha.min()) - margin, float(survey[0]))
+    hi = min(float(peak_alpha.max()) + margin, float(survey[-1]))
+    k_lo = math.floor((lo - ANCHOR) / step + 1e-9)
+    k_hi = math.ceil((hi - ANCHOR) / step - 1e-9)
+    n = max(int(n_slices), k_hi - k_lo + 1)
+    k_lo -= (n - (k_hi - k_lo + 1)) // 2  # widened evenly about the peaks
+    return ANCHOR + (k_lo + np.arange(n)) * step
+
+
+def edge_maxima(brightness: np.ndarray) -> tuple[int, int]:
+    """How many brightness curves (rows of (n, n_slices), NaN where undetected, seen in at least 3
+    slices) are brightest on the first slice, and how many on the last: particles whose peak may
+    lie outside the range."""
+    b = np.where(np.isfinite(brightness), brightness, -np.inf)
+    seen = np.sum(np.isfinite(brightness), axis=1) >= 3
+    if not seen.any():
+        return 0, 0
+    top = np.argmax(b[seen], axis=1)
+    return int(np.count_nonzero(top == 0)), int(np.count_nonzero(top == brightness.shape[1] - 1))
