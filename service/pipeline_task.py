@@ -101,7 +101,7 @@ def run_task(task: JobTask, progress: Callable[[float], None] | None = None) -> 
     result = process(exposure, calibration, params, keep_stack=task.keep_slices, progress=report,
                      cache=_worker_cache(cache_dir))
     output = JobOutput(columns={name: np.asarray(col) for name, col in result.particles.items()},
-                       parameters=result.params.to_dict())
+                       parameters=result.params.to_dict(), rejected=dict(result.rejected))
     provenance = result.metadata()
     provenance.pop("alphas", None)
     output.extra["provenance"] = provenance

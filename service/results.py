@@ -57,6 +57,8 @@ class JobOutput:
         Output-image pixels per slice pixel along each axis (slices are shrunk for viewing).
     seconds : float
         Time the worker spent on the job.
+    rejected : dict of str to ndarray
+        Candidates that did not become particles, with the reason (``reason`` column).
     """
 
     columns: dict[str, np.ndarray]
@@ -68,6 +70,7 @@ class JobOutput:
     slice_binning: int = 1
     seconds: float = 0.0
     extra: dict = field(default_factory=dict)
+    rejected: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def particles(self) -> int:

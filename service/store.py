@@ -138,6 +138,8 @@ class Store:
                 write_nx_process(entry, output.parameters)
                 if "provenance" in output.extra:
                     entry["process"]["provenance"] = json.dumps(output.extra["provenance"], default=str)
+                if output.rejected:
+                    write_nx_columns(nx_group(entry, "rejected", "NXdata"), output.rejected)
                 if output.curves is not None and output.curve_alpha is not None:
                     curves = nx_group(entry, "curves", "NXdata")
                     curves.attrs["signal"] = "brightness"
@@ -185,6 +187,11 @@ class Store:
             if "entry/process/provenance" not in f:
                 return {}
             return json.loads(decode_strings(f["entry/process/provenance"][()]))
+
+    def read_rejected(self, exposure_id: str) -> dict[str, np.ndarray]:
+        """The candidates that did not become particles, with their reasons (empty if none)."""
+        with h5py.File(self.result_path(exposure_id), "r") as f:
+            return read_nx_columns(f["entry/rejected"]) if "entry/rejected" in f else {}
 
     def read_curves(self, exposure_id: str) -> tuple[np.ndarray, np.ndarray] | None:
         """``(alpha, brightness)`` of shape (A,), (N, A), or None if not kept."""

@@ -221,3 +221,32 @@ def test_finer_output_grid_finds_the_same_particles(layer, layer_result):
     assert s.recall >= 0.9 and s.precision >= 0.9
     assert s.lateral_rms_over_nn < 0.03 and s.depth_abs_rms_over_nn < 0.15
     assert np.median(fine.particles["x"]) > 1.8 * np.median(layer_result.particles["x"])
+
+
+def test_particles_carry_quality_figures_and_rejected_candidates_their_reasons(layer, layer_result, tmp_path):
+    """Every particle has its quality columns; candidates that were dropped are listed with a reason."""
+    from analysis.detection.rejections import REASONS
+
+    r = layer_result
+    _, _, _, truth, _, _ = layer
+    assert np.all(r.particles["n_lit"] > 0) and np.all(np.isfinite(r.particles["blur_pitches"]))
+    # The fitted blur follows the truth's (the diameter on the MLA in lens pitches).
+    nearest = [np.argmin(np.hypot(truth["X"] - x, truth["Y"] - y)) for x, y in zip(r.particles["X"], r.particles["Y"])]
+    assert np.corrcoef(r.particles["blur_pitches"], truth["blur_pitches"][nearest])[0, 1] > 0.9
+    rejected = r.rejected
+    assert set(rejected) >= {"x", "y", "alpha", "X", "Y", "Z", "intensity", "residual", "reason"}
+    assert len(rejected["reason"]) > 0 and set(rejected["reason"]) <= set(REASONS)
+    with h5py.File(r.to_hdf5(tmp_path / "r.h5")) as f:
+        back = f["entry/frames/0/rejected"]
+        assert [v.decode() for v in back["reason"][()]] == rejected["reason"].tolist()
+
+
+def test_a_user_range_reports_particles_at_its_edges(layer):
+    folder, exposure, calibration, truth, nn, cache = layer
+    narrow = PipelineParams(alpha_min=0.997, alpha_max=1.003, n_slices=20)
+    r = process(exposure, calibration, narrow, cache=cache)
+    outside = int(np.sum((truth["alpha"] < 0.997) | (truth["alpha"] > 1.003)))
+    assert outside >= 2
+    edge = np.sum(r.rejected["reason"] == "edge_of_range")
+    assert edge >= 1 and any("edge of the alpha range" in w for w in r.warnings)
+    assert np.all((r.particles["alpha"] >= 0.997) & (r.particles["alpha"] <= 1.003))

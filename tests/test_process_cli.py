@@ -136,4 +136,4 @@ def test_score_against_the_simulated_truth(sim, tmp_path, capsys):
     code, report, _ = run_json(capsys, ["score", str(out), "--truth", str(alone)])
     assert code == 0 and "depth_floor" not in report
     code, _, err = run_json(capsys, ["score", str(out), "--truth", str(out)])
-    assert code == 2 and "blur_pitches" in err
+    assert code == 2 and "truth.csv" in err

@@ -109,6 +109,11 @@ def test_result_file_round_trips_table_curves_and_slices(store: Store) -> None:
     assert store.slice_count(a.id) == 2
     assert store.read_slice(a.id, 1)[0] == 1.01 and store.read_slice(a.id, 2) is None
     assert store.read_parameters(a.id)["alpha_min"] == 0.987
+    assert store.read_rejected(a.id) == {}
+    out.rejected = {"x": np.array([5.0]), "alpha": np.array([1.02]), "reason": np.array(["extended"])}
+    store.write_result(a, out)
+    rejected = store.read_rejected(a.id)
+    assert rejected["reason"].tolist() == ["extended"] and rejected["alpha"].tolist() == [1.02]
 
 
 def test_nan_columns_where_one_frame_lacks_a_column(store: Store) -> None:

@@ -49,6 +49,7 @@ def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit
     twice = seen_twice(fitter, fit, explained)
     if twice.any():
         explained -= fitter.render(fit.take(np.flatnonzero(twice)))
+        fitter.reject(peaks.take(twice), fit.take(twice), "seen_twice")
         keep = np.flatnonzero(~twice)
         peaks, fit = peaks.take(keep), fit.take(keep)
     new = fitter.fit(fit.sx_m, fit.sy_m, fit.alpha, subtract=explained, own=fit)
@@ -57,6 +58,7 @@ def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit
         # The dropped fits' light was taken off their neighbours' pixels too: refit those without it.
         near = ok & _overlapping(fitter.table, fit, np.flatnonzero(~ok), pad_pitches=2.0)
         explained -= fitter.render(fit.take(np.flatnonzero(~ok)))
+        fitter.reject(moved(fitter.grid, peaks, new).take(~ok), new.take(~ok), "seen_twice")
         keep = np.flatnonzero(ok)
         peaks, fit, new, near = peaks.take(keep), fit.take(keep), new.take(keep), near[keep]
         log.debug("deblend: %d fits dropped, %d neighbours refitted", (~ok).sum(), near.sum())
@@ -165,8 +167,7 @@ def split_shared(fitter: RayFitter, peaks: Peaks, fit: RayFit, *, shadow_probe: 
     peaks, fit = replace_fits(fitter.grid, peaks, fit, parents[rows], host.take(rows))
     new = partner.take(rows)
     both, both_fit = Peaks.concat(peaks, moved(fitter.grid, peaks.take(parents[rows]), new)), RayFit.concat(fit, new)
-    kept = fitter.unique(both, both_fit, settled=len(peaks))  # the fits kept so far win over partners
-    return both.take(kept), both_fit.take(kept)
+    return fitter.unique(both, both_fit, settled=len(peaks), record=False)  # the fits kept so far win
 
 
 def _overlapping(table: LightFieldTable, fit: RayFit, rows: np.ndarray, *, pad_pitches: float) -> np.ndarray:

@@ -23,6 +23,7 @@ import numpy as np
 from analysis.cache import Cache
 from analysis.camera.image_grid import ImageGrid
 from analysis.detection.curves import Peaks, unique_indices
+from analysis.detection.rejections import Rejections
 from analysis.lightfield.table import LightFieldTable
 
 from .rayfit import FitGrid, RayFit, fit_rays, render_fits, unexplained_light
@@ -103,6 +104,8 @@ class RayFitter:
         Fits closer than this in the image and in alpha are one particle (the brighter kept).
     cache : Cache or None
         Where the table's lens index is kept between calls.
+    rejected : Rejections or None
+        Where the stages record the candidates they drop, with the reason.
     """
 
     image: np.ndarray
@@ -117,6 +120,7 @@ class RayFitter:
     merge_radius_px: float
     merge_alpha: float
     cache: Cache | None = None
+    rejected: Rejections | None = None
 
     @property
     def pitch_m(self) -> float:
@@ -178,11 +182,22 @@ class RayFitter:
         limit = self.max_residual if max_residual is None else max_residual
         return (fit.intensity > max(self.min_intensity, 0.0)) & (fit.residual <= limit)
 
-    def unique(self, peaks: Peaks, fit: RayFit, *, settled: int = 0) -> np.ndarray:
-        """Rows to keep when fits that converged onto one particle are merged (the brightest kept;
-        the first ``settled``, accepted earlier, win over the rest)."""
-        return unique_indices(peaks, radius_px=self.merge_radius_px, alpha_tolerance=self.merge_alpha,
+    def unique(self, peaks: Peaks, fit: RayFit, *, settled: int = 0, record: bool = True) -> tuple[Peaks, RayFit]:
+        """Fits that converged onto one particle merged (the brightest kept; the first ``settled``,
+        accepted earlier, win over the rest); the others recorded as duplicates unless ``record``
+        is False (hypotheses of the stage, such as probes, rather than candidates)."""
+        kept = unique_indices(peaks, radius_px=self.merge_radius_px, alpha_tolerance=self.merge_alpha,
                               priority=fit.intensity, settled=settled)
+        if record:
+            gone = np.setdiff1d(np.arange(len(peaks)), kept)
+            self.reject(peaks.take(gone), fit.take(gone), "duplicate")
+        return peaks.take(kept), fit.take(kept)
+
+    def reject(self, peaks: Peaks, fit: RayFit | None, reason: str) -> None:
+        """Record candidates as dropped (when this fitter records them)."""
+        if self.rejected is not None:
+            self.rejected.add(peaks, reason, intensity=None if fit is None else fit.intensity,
+                              residual=None if fit is None else fit.residual)
 
 
 def refine_peaks(fitter: RayFitter, peaks: Peaks, *, shadow_probe: float = 0.0,
@@ -196,9 +211,7 @@ def refine_peaks(fitter: RayFitter, peaks: Peaks, *, shadow_probe: float = 0.0,
     """
     sx0, sy0 = fitter.grid.to_lens_plane(peaks.x, peaks.y)
     fit = fitter.fit(sx0, sy0, peaks.alpha, subtract=subtract)
-    refined, fit = accept(fitter, peaks, fit)
-    kept = fitter.unique(refined, fit)
-    refined, fit = refined.take(kept), fit.take(kept)
+    refined, fit = fitter.unique(*accept(fitter, peaks, fit))
     if shadow_probe <= 0 or len(refined) == 0:
         return refined, fit
     # A particle hidden behind another (same line of sight, other depth) often merges into its
@@ -225,18 +238,26 @@ def refine_peaks(fitter: RayFitter, peaks: Peaks, *, shadow_probe: float = 0.0,
                       fine=PROBE_GRID, wide_fine=WIDE_PROBE_GRID)
     log.debug("shadow probes: %d of %d particles probed", parents.size, len(refined))
     good = np.flatnonzero(pfit.intensity >= PROBE_FRACTION * parent_intensity)
-    probes, pfit = accept(fitter, probes.take(good), pfit.take(good), min(fitter.max_residual, PROBE_RESIDUAL))
+    probes, pfit = accept(fitter, probes.take(good), pfit.take(good), min(fitter.max_residual, PROBE_RESIDUAL),
+                          record=False)
     if len(probes) == 0:
         return refined, fit
-    both, both_fit = Peaks.concat(refined, probes), RayFit.concat(fit, pfit)
-    kept = fitter.unique(both, both_fit, settled=len(refined))  # found particles win over probes
-    return both.take(kept), both_fit.take(kept)
+    # Found particles win over probes that converged onto them.
+    return fitter.unique(Peaks.concat(refined, probes), RayFit.concat(fit, pfit), settled=len(refined), record=False)
 
 
-def accept(fitter: RayFitter, peaks: Peaks, fit: RayFit, max_residual: float | None = None) -> tuple[Peaks, RayFit]:
-    """Peaks moved to their fitted position and depth, keeping fits with light and a small misfit."""
-    keep = np.flatnonzero(fitter.acceptable(fit, max_residual))
-    return moved(fitter.grid, peaks, fit).take(keep), fit.take(keep)
+def accept(fitter: RayFitter, peaks: Peaks, fit: RayFit, max_residual: float | None = None, *,
+           record: bool = True) -> tuple[Peaks, RayFit]:
+    """Peaks moved to their fitted position and depth, keeping fits with light and a small misfit;
+    the others recorded as ``faint`` or ``misfit`` unless ``record`` is False."""
+    at = moved(fitter.grid, peaks, fit)
+    ok = fitter.acceptable(fit, max_residual)
+    if record and not ok.all():
+        faint = fit.intensity <= max(fitter.min_intensity, 0.0)
+        fitter.reject(at.take(faint), fit.take(faint), "faint")
+        fitter.reject(at.take(~ok & ~faint), fit.take(~ok & ~faint), "misfit")
+    keep = np.flatnonzero(ok)
+    return at.take(keep), fit.take(keep)
 
 
 def replace_fits(grid: ImageGrid, peaks: Peaks, fit: RayFit, rows: np.ndarray, new: RayFit) -> tuple[Peaks, RayFit]:
@@ -245,13 +266,14 @@ def replace_fits(grid: ImageGrid, peaks: Peaks, fit: RayFit, rows: np.ndarray, n
     return moved(grid, peaks, merged), merged
 
 
-def inside(peaks: Peaks, fit: RayFit, limits: tuple[float, float]) -> tuple[Peaks, RayFit]:
+def inside(fitter: RayFitter, peaks: Peaks, fit: RayFit, limits: tuple[float, float]) -> tuple[Peaks, RayFit]:
     """Drop fits that left the alpha range ``(lo, hi)`` (the user's, or the survey's): they found a
     particle of another range."""
-    keep = np.flatnonzero((peaks.alpha >= limits[0]) & (peaks.alpha <= limits[1]))
-    if keep.size < len(peaks):
-        return peaks.take(keep), fit.take(keep)
-    return peaks, fit
+    ok = (peaks.alpha >= limits[0]) & (peaks.alpha <= limits[1])
+    if ok.all():
+        return peaks, fit
+    fitter.reject(peaks.take(~ok), fit.take(~ok), "outside_range")
+    return peaks.take(ok), fit.take(ok)
 
 
 def residual_image(image: np.ndarray, table: LightFieldTable, explained: np.ndarray) -> np.ndarray:

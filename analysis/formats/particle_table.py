@@ -31,7 +31,8 @@ from .atomic_write import atomic_path
 
 #: Columns of the particle table, in this order.
 COLUMNS: tuple[str, ...] = ("particle", "x", "y", "alpha", "X", "Y", "Z", "brightness",
-                            "peak_height", "peak_width", "residual", "prominence", "alpha_std", "intensity")
+                            "peak_height", "peak_width", "residual", "prominence", "alpha_std", "intensity",
+                            "n_lit", "blur_pitches")
 #: Units of the columns that have them (NeXus `units` attributes).
 UNITS = {"x": "pixel", "y": "pixel", "X": "mm", "Y": "mm", "Z": "mm", "alpha": "1", "peak_width": "1"}
 #: Columns that hold whole numbers (read back as int64 from CSV).
@@ -215,7 +216,8 @@ def write_hdf5(path: str | Path, columns: Mapping[str, np.ndarray], *, parameter
 
     Besides ``/entry/data`` and ``/entry/process``, each exposure's extras go to
     ``/entry/frames/<n>`` (NXcollection): ``frames[n]`` maps ``metadata`` (a JSON-able dict, kept as
-    an attribute) and arrays (``alpha``, ``curves``, ``stack``, ``subaperture``; None: left out).
+    an attribute), arrays (``alpha``, ``curves``, ``stack``, ``subaperture``) and tables (mappings
+    of columns, e.g. ``rejected``: NXdata groups); None is left out.
     """
     path = Path(path)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
@@ -228,6 +230,9 @@ def write_hdf5(path: str | Path, columns: Mapping[str, np.ndarray], *, parameter
             g.attrs["metadata"] = json.dumps(frame.get("metadata", {}), sort_keys=True, default=str)
             for name, values in frame.items():
                 if name == "metadata" or values is None:
+                    continue
+                if isinstance(values, Mapping):
+                    write_nx_columns(nx_group(g, name, "NXdata"), values)
                     continue
                 values = np.asarray(values)
                 big = values.ndim >= 2

@@ -82,13 +82,11 @@ def range_of_peaks(peak_alpha: np.ndarray, survey: np.ndarray, *, n_slices: int,
     return ANCHOR + (k_lo + np.arange(n)) * step
 
 
-def edge_maxima(brightness: np.ndarray) -> tuple[int, int]:
-    """How many brightness curves (rows of (n, n_slices), NaN where undetected, seen in at least 3
-    slices) are brightest on the first slice, and how many on the last: particles whose peak may
-    lie outside the range."""
+def edge_maxima(brightness: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which brightness curves (rows of (n, n_slices), NaN where undetected, seen in at least 3
+    slices) are brightest on the first slice, and which on the last: particles whose peak may lie
+    outside the range (two arrays of row indices)."""
     b = np.where(np.isfinite(brightness), brightness, -np.inf)
     seen = np.sum(np.isfinite(brightness), axis=1) >= 3
-    if not seen.any():
-        return 0, 0
-    top = np.argmax(b[seen], axis=1)
-    return int(np.count_nonzero(top == 0)), int(np.count_nonzero(top == brightness.shape[1] - 1))
+    top = np.argmax(b, axis=1) if b.size else np.zeros(0, dtype=np.int64)
+    return np.flatnonzero(seen & (top == 0)), np.flatnonzero(seen & (top == brightness.shape[1] - 1))

@@ -55,6 +55,7 @@ from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_
 from analysis.depth.refine import (COARSE_LATERAL_PITCHES, COARSE_TEMPERATURE, PROBE_FRACTION, PROBE_RESIDUAL,
                                    RayFitter, inside, refine_peaks, residual_image)
 from analysis.detection.curves import Peaks, Tracks
+from analysis.detection.rejections import Rejections
 from analysis.errors import CameraMismatchError, MetadataError
 from analysis.formats.exposure import Exposure, read_exposure
 from analysis.lightfield.refocus import default_alphas, products, refocus_stack, select_samples, subaperture_image
@@ -120,6 +121,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     cache = Cache() if cache is None else cache
     clock = StageClock(progress)
     warnings: list[str] = []
+    rejected = Rejections()
 
     check_same_camera(exposure, calibration)
     model = CameraModel.from_metadata(exposure.metadata)
@@ -138,14 +140,16 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     def finish(peaks: Peaks, tracks: Tracks | None, stack: np.ndarray | None, sub: np.ndarray | None,
                threshold: float, fit: RayFit | None = None) -> Result:
         with clock.stage("coordinates"):
-            particles, curves = _particle_table(peaks, tracks, alphas, grid, coordinates, warnings, fit)
+            particles, curves = _particle_table(peaks, tracks, alphas, table, coordinates, warnings, fit)
+            dropped = rejected.table()
+            dropped.update(zip("XYZ", _physical(dropped["x"], dropped["y"], dropped["alpha"], grid, coordinates)))
         save_normalisations(table, calibration, cache, grid_oversample=params.grid_oversample, before=norms_before)
         return Result(particles=particles, params=params, alphas=alphas, grid=grid,
                       coordinates=coordinates.to_dict(), timings=clock.finish(), warnings=warnings,
                       exposure_name=exposure.name, exposure_sha1=exposure.sha1, serial=exposure.serial,
                       white_sha1=calibration.white_sha1, curves=curves,
                       stack=stack if keep_stack else None, subaperture=sub if keep_stack else None,
-                      threshold=threshold)
+                      threshold=threshold, rejected=dropped)
 
     fraction, count = saturated_fraction(exposure.image, model.white_level)
     if fraction > SATURATED_FRAME_FRACTION:
@@ -177,11 +181,13 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         product = products(stack, sub, out=None if keep_stack else stack)
 
     peaks, tracks = locate(product, alphas, params, threshold=threshold, clock=clock)
-    low, high = edge_maxima(tracks.brightness)
-    if params.user_range and low + high:
-        warnings.append(f"{low + high} particle(s) look brightest at the edge of the alpha range "
-                        f"{alphas[0]:.4f} ... {alphas[-1]:.4f} ({low} at its start, {high} at its end) and may "
-                        "lie outside it: widen the range, or leave it out so the pipeline finds it")
+    if params.user_range:
+        low, high = edge_maxima(tracks.brightness)
+        if low.size + high.size:
+            rejected.add(_edge_candidates(tracks, alphas, low, high), "edge_of_range")
+            warnings.append(f"{low.size + high.size} particle(s) look brightest at the edge of the alpha range "
+                            f"{alphas[0]:.4f} ... {alphas[-1]:.4f} ({low.size} at its start, {high.size} at its "
+                            "end) and may lie outside it: widen the range, or leave it out so the pipeline finds it")
     fit = None
     if params.refine and len(peaks):
         fitter = RayFitter(
@@ -192,9 +198,9 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                            positions=params.fit_lateral, pixel_points=1, temperature=COARSE_TEMPERATURE),
             min_intensity=params.min_intensity_sigma * max(samples.sigma, 0.5),
             max_residual=params.max_fit_residual, merge_radius_px=params.link_radius_px,
-            merge_alpha=params.merge_slices * float(alphas[1] - alphas[0]), cache=cache)
+            merge_alpha=params.merge_slices * float(alphas[1] - alphas[0]), cache=cache, rejected=rejected)
         with clock.stage("refine"):
-            peaks, fit = inside(*refine_peaks(fitter, peaks, shadow_probe=params.shadow_probe), limits)
+            peaks, fit = inside(fitter, *refine_peaks(fitter, peaks, shadow_probe=params.shadow_probe), limits)
         with clock.stage("more_passes"):
             for _ in range(params.passes - 1):
                 found = _look_again(fitter, table, params, alphas, limits, threshold, peaks, tracks, fit)
@@ -249,46 +255,43 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, params: PipelineParam
     rsub = subaperture_image(residual, table, fraction=params.aperture_fraction, blur_sigma_px=params.blur_sigma_px,
                              grid=fitter.grid, samples=rs, cache=fitter.cache)
     new, new_tracks = locate(products(rstack, rsub, out=rstack), alphas, params, threshold=threshold)
-    new = new.take(np.flatnonzero(new.peak_height >= NEW_PEAK_FRACTION * np.median(peaks.peak_height)))
+    weak = new.peak_height < NEW_PEAK_FRACTION * np.median(peaks.peak_height)
+    fitter.reject(new.take(weak), None, "weak_residual")
+    new = new.take(~weak)
     log.debug("another pass: %d candidates", len(new))
     if len(new) == 0:
         return None
-    new, new_fit = inside(*refine_peaks(fitter, new, subtract=explained), limits)
+    new, new_fit = inside(fitter, *refine_peaks(fitter, new, subtract=explained), limits)
     # As for hidden particles: a new one must fit well and be about as bright as the others.
-    good = np.flatnonzero((new_fit.residual <= PROBE_RESIDUAL)
-                          & (new_fit.intensity >= PROBE_FRACTION * np.median(fit.intensity)))
+    good = (new_fit.residual <= PROBE_RESIDUAL) & (new_fit.intensity >= PROBE_FRACTION * np.median(fit.intensity))
+    fitter.reject(new.take(~good), new_fit.take(~good), "weak_residual")
     new, new_fit = new.take(good), new_fit.take(good)
     if len(new) == 0:
         return None
     # The new peaks' curves are tracks of the residual's stack: append them to the first pass's,
     # so each particle's track index still points at its own curve.
     both = dataclasses.replace(Peaks.concat(peaks, new), track=np.r_[peaks.track, new.track + len(tracks)])
-    both_fit = RayFit.concat(fit, new_fit)
-    kept = fitter.unique(both, both_fit, settled=len(peaks))
-    if kept.size == len(peaks):
+    both, both_fit = fitter.unique(both, RayFit.concat(fit, new_fit), settled=len(peaks))
+    if len(both) == len(peaks):
         return None
     tracks = Tracks(x=np.vstack([tracks.x, new_tracks.x]), y=np.vstack([tracks.y, new_tracks.y]),
                     brightness=np.vstack([tracks.brightness, new_tracks.brightness]))
-    return both.take(kept), tracks, both_fit.take(kept)
+    return both, tracks, both_fit
 
 
-def _particle_table(peaks: Peaks, tracks: Tracks | None, alphas: np.ndarray, grid: ImageGrid,
+def _particle_table(peaks: Peaks, tracks: Tracks | None, alphas: np.ndarray, table: LightFieldTable,
                     coordinates: Calibration3D, warnings: list[str], fit: RayFit | None = None
                     ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     n = len(peaks)
     # Order particles by image position (row, then column) so tables compare between runs.
     order = np.lexsort((peaks.x, peaks.y)) if n else np.empty(0, dtype=np.int64)
     peaks = peaks.take(order)
-    if fit is not None:
-        fit = fit.take(order)
-        alpha_std, intensity = fit.alpha_spread, fit.intensity
-    else:
-        alpha_std, intensity = np.full(n, np.nan), np.full(n, np.nan)
-    try:
-        X, Y, Z = to_physical(peaks.x, peaks.y, peaks.alpha, grid, coordinates)
-    except MetadataError as exc:
-        warnings.append(f"no physical coordinates: {exc}")
-        X = Y = Z = np.full(n, np.nan)
+    nan = np.full(n, np.nan)
+    fit = None if fit is None else fit.take(order)
+    X, Y, Z = _physical(peaks.x, peaks.y, peaks.alpha, table.grid, coordinates)
+    if n and not np.isfinite(Z).any():
+        warnings.append("no physical coordinates: the metadata give no usable exit-pupil distance; "
+                        "give a user calibration (pixel size and depth per alpha)")
     if tracks is not None and n:
         curves = tracks.brightness[peaks.track].astype(np.float32)
         step = float(alphas[1] - alphas[0])
@@ -297,12 +300,36 @@ def _particle_table(peaks: Peaks, tracks: Tracks | None, alphas: np.ndarray, gri
     else:
         curves = np.empty((n, alphas.size), dtype=np.float32)
         brightness = np.empty(n)
+    pitch = float(np.hypot(*table.basis_m[:, 0]))
     particles = {"particle": np.arange(n, dtype=np.int64), "x": peaks.x, "y": peaks.y, "alpha": peaks.alpha,
-                 "X": np.asarray(X, float), "Y": np.asarray(Y, float), "Z": np.asarray(Z, float),
-                 "brightness": np.asarray(brightness, float), "peak_height": peaks.peak_height,
+                 "X": X, "Y": Y, "Z": Z, "brightness": np.asarray(brightness, float), "peak_height": peaks.peak_height,
                  "peak_width": peaks.peak_width, "residual": peaks.residual, "prominence": peaks.prominence,
-                 "alpha_std": np.asarray(alpha_std, float), "intensity": np.asarray(intensity, float)}
+                 "alpha_std": nan if fit is None else fit.alpha_spread,
+                 "intensity": nan if fit is None else fit.intensity,
+                 "n_lit": nan if fit is None else fit.n_lit.astype(float),
+                 # Diameter of the blur disk on the micro-lens array, in lens pitches (as the
+                 # simulator's truth tables give it): below 1 one lens may hold all the light.
+                 "blur_pitches": 2.0 * np.abs(1.0 - 1.0 / peaks.alpha) * table.aperture_radius_m / pitch}
     return particles, curves
+
+
+def _edge_candidates(tracks: Tracks, alphas: np.ndarray, low: np.ndarray, high: np.ndarray) -> Peaks:
+    """Curves brightest on the first (``low``) or last (``high``) slice, as candidates there."""
+    rows = np.r_[low, high]
+    col = np.r_[np.zeros(low.size, np.int64), np.full(high.size, alphas.size - 1)]
+    n = rows.size
+    return Peaks(track=rows, alpha=alphas[col], x=tracks.x[rows, col], y=tracks.y[rows, col],
+                 peak_height=tracks.brightness[rows, col], peak_width=np.full(n, np.nan), residual=np.full(n, np.nan),
+                 prominence=np.full(n, np.nan))
+
+
+def _physical(x: np.ndarray, y: np.ndarray, alpha: np.ndarray, grid: ImageGrid,
+              coordinates: Calibration3D) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``X, Y, Z`` (mm), NaN without a usable depth model."""
+    try:
+        return tuple(np.asarray(v, float) for v in to_physical(x, y, alpha, grid, coordinates))  # type: ignore[return-value]
+    except MetadataError:
+        return np.full(len(x), np.nan), np.full(len(x), np.nan), np.full(len(x), np.nan)
 
 
 def _no_peaks() -> Peaks:

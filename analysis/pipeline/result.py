@@ -32,8 +32,10 @@ class Result:
         pixel as a fraction of ``intensity``; without refinement, of the brightness-curve fit in
         ``log B``), ``prominence`` (fraction of the curve's maximum; below 1 for the lesser
         particles of a shadowing group), ``alpha_std`` (spread of alpha over the candidates the
-        raw pixels allow: large where one lens holds all the light) and ``intensity`` (fitted DN
-        of a lit pixel).
+        raw pixels allow: large where one lens holds all the light), ``intensity`` (fitted DN
+        of a lit pixel), ``n_lit`` (raw samples the fit lights) and ``blur_pitches`` (diameter
+        of the particle's blur disk on the micro-lens array in lens pitches: below about 1, one
+        lens may hold all its light and its depth is open within the range that lens allows).
     params : PipelineParams
     alphas : ndarray of shape (n_slices,)
     grid : ImageGrid
@@ -52,6 +54,9 @@ class Result:
         The refocused images (A, H, W) and the sub-aperture image (H, W), when kept.
     threshold : float
         Detection threshold applied to the product images.
+    rejected : dict of str to ndarray
+        The candidates that did not become particles (``x, y, alpha, X, Y, Z, intensity,
+        residual, reason``; the reasons: :data:`analysis.detection.rejections.REASONS`).
     """
 
     particles: dict[str, np.ndarray]
@@ -69,6 +74,7 @@ class Result:
     stack: np.ndarray | None = None
     subaperture: np.ndarray | None = None
     threshold: float = math.nan
+    rejected: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.particles["particle"].size)
@@ -90,7 +96,7 @@ class Result:
     def nexus_frame(self) -> dict[str, Any]:
         """This exposure's extras for :func:`analysis.formats.particle_table.write_hdf5`."""
         return {"metadata": self.metadata(), "alpha": self.alphas, "curves": self.curves, "stack": self.stack,
-                "subaperture": self.subaperture}
+                "subaperture": self.subaperture, "rejected": self.rejected or None}
 
     def metadata(self) -> dict[str, Any]:
         """Provenance as JSON-able values: parameters, calibration, timings, warnings."""

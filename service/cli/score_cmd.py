@@ -44,11 +44,15 @@ def run(args: argparse.Namespace) -> int:
     from analysis.simulation.scoring import depth_floor, score
     from analysis.camera.model import CameraModel
     from analysis.formats.exposure import read_exposure
+    from analysis.errors import ParameterError
     from analysis.formats.particle_table import read_table
 
     try:
         found = read_table(args.table, frame=args.frame)
         truth = read_table(args.truth, required=("X", "Y", "Z", "alpha", "x", "y", "blur_pitches"))
+        if "intensity" in truth:
+            raise ParameterError(f"{args.truth} is a table of particles found (it has fit columns such as "
+                                 "intensity); give the simulator's IMG_nnnn.truth.csv")
         report = score(found, truth).to_dict()
         exposure_path = args.exposure or _exposure_beside(args.truth)
         if exposure_path is not None:

@@ -1,0 +1,67 @@
+"""Candidates that did not become particles, each with the reason why.
+
+A wrong particle is worse than a missing one, so the pipeline drops candidates readily; every
+stage that drops one says why here, so that a user can see what was left out and judge it (the
+``--save-stack`` file and the service's result file list them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .curves import Peaks
+
+#: Why a candidate was dropped (the ``reason`` column), and what that means.
+REASONS: dict[str, str] = {
+    "faint": "its fitted light is below the intensity threshold (noise, or the tail of another particle)",
+    "misfit": "the point-source model does not explain its light (its fit's misfit is too large)",
+    "duplicate": "its fit converged onto a particle already found",
+    "outside_range": "its fit left the alpha range",
+    "edge_of_range": "its brightness is highest at the edge of the alpha range: it may lie outside",
+    "seen_twice": "its light is explained by a neighbouring particle (a duplicate or a ghost at another depth)",
+    "weak_residual": "left-over light of the particles found, too weak for a particle of its own",
+    "extended": "its light does not converge to a point: an extended source (reflection, glow, glare)",
+}
+
+
+@dataclass
+class Rejections:
+    """Dropped candidates, in the order they were dropped: output-image position, alpha, the fitted
+    intensity and misfit where there was a fit (NaN otherwise), and a reason (a key of
+    :data:`REASONS`)."""
+
+    parts: list[dict[str, np.ndarray]] = field(default_factory=list)
+
+    def add(self, peaks: Peaks, reason: str, *, intensity: np.ndarray | None = None,
+            residual: np.ndarray | None = None) -> None:
+        """Record ``peaks`` as dropped for ``reason``."""
+        if reason not in REASONS:
+            raise ValueError(f"unknown rejection reason {reason!r}; known: {sorted(REASONS)}")
+        n = len(peaks)
+        if n == 0:
+            return
+        nan = np.full(n, np.nan)
+        self.parts.append({"x": np.asarray(peaks.x, float), "y": np.asarray(peaks.y, float),
+                           "alpha": np.asarray(peaks.alpha, float),
+                           "intensity": nan if intensity is None else np.asarray(intensity, float),
+                           "residual": nan if residual is None else np.asarray(residual, float),
+                           "reason": np.full(n, reason)})
+
+    def __len__(self) -> int:
+        return sum(len(p["x"]) for p in self.parts)
+
+    def counts(self) -> dict[str, int]:
+        """How many were dropped for each reason."""
+        out: dict[str, int] = {}
+        for p in self.parts:
+            out[str(p["reason"][0])] = out.get(str(p["reason"][0]), 0) + len(p["x"])
+        return out
+
+    def table(self) -> dict[str, np.ndarray]:
+        """The dropped candidates as columns (``reason`` as text)."""
+        names = ("x", "y", "alpha", "intensity", "residual", "reason")
+        if not self.parts:
+            return {name: (np.empty(0, dtype=str) if name == "reason" else np.empty(0)) for name in names}
+        return {name: np.concatenate([p[name] for p in self.parts]) for name in names}
