@@ -12,8 +12,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from analysis.depth.rayfit import FitGrid
 from analysis.lightfield.table import LightFieldTable
 
 #: The survey looks as far from focus as a blur of this many lens pitches (radius on the MLA):
@@ -23,6 +23,8 @@ SURVEY_BLUR_PITCHES = 12.0
 SURVEY_SLICES = 48
 #: The found range is widened by this many survey steps either side (a peak's half width) ...
 SURVEY_MARGIN_STEPS = 2.0
+#: The fit that checks the survey's peaks: a cheap fine pass (it sets a range, not positions).
+SURVEY_GRID = FitGrid(depths=5, lateral_pitches=0.15, positions=3, pixel_points=3, temperature=0.25)
 #: ... and is at least this wide in alpha: the paper's 0.987 ... 1.013, which the stack covers
 #: with ``n_slices`` slices (a compact cluster gets the step the pipeline's thresholds were set
 #: with; a wider range gets more slices of that step).
@@ -42,23 +44,9 @@ def survey_alphas(table: LightFieldTable, *, blur_pitches: float = SURVEY_BLUR_P
     return np.linspace(1.0 / (1.0 + c_max), 1.0 / (1.0 - c_max), n)
 
 
-def main_peaks(x: np.ndarray, y: np.ndarray, height: np.ndarray, *, radius_px: float = 3.0,
-               ratio: float = 2.0) -> np.ndarray:
-    """Peaks (a mask) with no peak more than ``ratio`` times higher within ``radius_px``.
-
-    At the survey's coarse steps, lesser maxima on a bright particle's line of sight are mostly
-    its ghosts, where the shifted lattice of samples happens to line up again far from focus (a
-    few % of the particle's peak); hidden partners are found later from the particles, not from
-    the survey.
-    """
-    xy = np.column_stack([np.asarray(x, float), np.asarray(y, float)])
-    height = np.asarray(height, dtype=np.float64)
-    keep = np.ones(height.size, dtype=bool)
-    if height.size < 2:
-        return keep
-    for i, near in enumerate(cKDTree(xy).query_ball_point(xy, r=radius_px)):
-        keep[i] = not np.any(height[near] > ratio * height[i])
-    return keep
+def lattice_step(n_slices: int) -> float:
+    """The fine stack's alpha step for a found range: ``n_slices`` per :data:`MIN_RANGE`."""
+    return MIN_RANGE / (n_slices - 1)
 
 
 def range_of_peaks(peak_alpha: np.ndarray, survey: np.ndarray, *, n_slices: int,
@@ -71,7 +59,7 @@ def range_of_peaks(peak_alpha: np.ndarray, survey: np.ndarray, *, n_slices: int,
     peak_alpha = peak_alpha[np.isfinite(peak_alpha)]
     if peak_alpha.size == 0:
         return None
-    step = MIN_RANGE / (n_slices - 1)
+    step = lattice_step(n_slices)
     margin += SURVEY_MARGIN_STEPS * float(survey[1] - survey[0])
     lo = max(float(peak_alpha.min()) - margin, float(survey[0]))
     hi = min(float(peak_alpha.max()) + margin, float(survey[-1]))

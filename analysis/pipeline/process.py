@@ -62,7 +62,7 @@ from analysis.lightfield.refocus import default_alphas, products, refocus_stack,
 from analysis.lightfield.table import LightFieldTable
 
 from .candidates import locate, product_threshold
-from .depth_range import edge_maxima, main_peaks, range_of_peaks, survey_alphas
+from .depth_range import SURVEY_GRID, edge_maxima, lattice_step, range_of_peaks, survey_alphas
 from .params import PipelineParams
 from .result import Result
 from .stages import Progress, StageClock
@@ -165,9 +165,20 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     with clock.stage("subaperture"):
         sub = subaperture_image(exposure.image, table, fraction=params.aperture_fraction,
                                 blur_sigma_px=params.blur_sigma_px, grid=grid, samples=samples, cache=cache)
+    fitter = RayFitter(
+        exposure.image, get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX), grid,
+        background=samples.background, aperture_per_lens_plane=aperture_per_lens_plane(optics),
+        alpha_half_range=params.refine_alpha_range,
+        coarse=FitGrid(depths=params.fit_depths, lateral_pitches=COARSE_LATERAL_PITCHES,
+                       positions=params.fit_lateral, pixel_points=1, temperature=COARSE_TEMPERATURE),
+        min_intensity=params.min_intensity_sigma * max(samples.sigma, 0.5),
+        max_residual=params.max_fit_residual, merge_radius_px=params.link_radius_px,
+        merge_alpha=params.merge_slices * (float(alphas[1] - alphas[0]) if params.user_range
+                                           else lattice_step(params.n_slices)),
+        cache=cache, rejected=rejected) if params.refine else None
     if not params.user_range:
         with clock.stage("survey"):
-            found = _survey(exposure.image, table, samples, sub, alphas, params, threshold, cache)
+            found = _survey(exposure.image, table, samples, sub, alphas, params, threshold, cache, fitter)
         if found is None:
             warnings.append(f"no particles found above the noise anywhere in alpha {alphas[0]:.4f} ... "
                             f"{alphas[-1]:.4f}; check the exposure and the threshold")
@@ -189,16 +200,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                             f"{alphas[0]:.4f} ... {alphas[-1]:.4f} ({low.size} at its start, {high.size} at its "
                             "end) and may lie outside it: widen the range, or leave it out so the pipeline finds it")
     fit = None
-    if params.refine and len(peaks):
-        fitter = RayFitter(
-            exposure.image, get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX), grid,
-            background=samples.background, aperture_per_lens_plane=aperture_per_lens_plane(optics),
-            alpha_half_range=params.refine_alpha_range,
-            coarse=FitGrid(depths=params.fit_depths, lateral_pitches=COARSE_LATERAL_PITCHES,
-                           positions=params.fit_lateral, pixel_points=1, temperature=COARSE_TEMPERATURE),
-            min_intensity=params.min_intensity_sigma * max(samples.sigma, 0.5),
-            max_residual=params.max_fit_residual, merge_radius_px=params.link_radius_px,
-            merge_alpha=params.merge_slices * float(alphas[1] - alphas[0]), cache=cache, rejected=rejected)
+    if fitter is not None and len(peaks):
         with clock.stage("refine"):
             peaks, fit = inside(fitter, *refine_peaks(fitter, peaks, shadow_probe=params.shadow_probe), limits)
         with clock.stage("more_passes"):
@@ -226,16 +228,24 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
 
 
 def _survey(image: np.ndarray, table: LightFieldTable, samples, sub: np.ndarray, survey: np.ndarray,
-            params: PipelineParams, threshold: float, cache: Cache) -> np.ndarray | None:
+            params: PipelineParams, threshold: float, cache: Cache, fitter: RayFitter | None) -> np.ndarray | None:
     """The fine stack's alphas from a coarse stack over the whole range (``survey``); None when it
-    shows no particle."""
+    shows no particle.
+
+    Far from focus the shift-and-add lines a particle's samples up again on the lattice (ghosts at
+    ``c +- pitch / (aperture metres per pixel)``, about 0.016 in alpha here), so only peaks whose
+    light the forward model explains as a point at their depth set the range."""
     stack = refocus_stack(image, table, survey, grid=table.grid, samples=samples, cache=cache)
     coarse = dataclasses.replace(params, maxima_half_slices=-1)  # the range, not every particle
     peaks, _ = locate(products(stack, sub, out=stack), survey, coarse, threshold=threshold)
-    peaks = peaks.take(np.flatnonzero(main_peaks(peaks.x, peaks.y, peaks.peak_height)))
-    log.debug("survey: %d peaks over alpha %.4f ... %.4f", len(peaks), survey[0], survey[-1])
-    # Room for the particles hidden behind those seen (found by probes and the second pass).
-    return range_of_peaks(peaks.alpha, survey, n_slices=params.n_slices, margin=params.shadow_probe)
+    alpha = peaks.alpha
+    if fitter is not None and len(peaks):
+        sx, sy = table.grid.to_lens_plane(peaks.x, peaks.y)
+        fit = fitter.fit(sx, sy, peaks.alpha, fine=SURVEY_GRID, wide_fine=SURVEY_GRID)
+        alpha = fit.alpha[fitter.acceptable(fit)]
+    log.debug("survey: %d peaks over alpha %.4f ... %.4f, %d explained", len(peaks), survey[0], survey[-1],
+              alpha.size)
+    return range_of_peaks(alpha, survey, n_slices=params.n_slices)
 
 
 def _look_again(fitter: RayFitter, table: LightFieldTable, params: PipelineParams, alphas: np.ndarray,
