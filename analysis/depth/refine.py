@@ -19,6 +19,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from analysis.cache import Cache
 from analysis.camera.image_grid import ImageGrid
@@ -192,6 +193,27 @@ class RayFitter:
             gone = np.setdiff1d(np.arange(len(peaks)), kept)
             self.reject(peaks.take(gone), fit.take(gone), "duplicate")
         return peaks.take(kept), fit.take(kept)
+
+    def overlapping_max(self, sx_m: np.ndarray, sy_m: np.ndarray, alpha: np.ndarray, fit: RayFit,
+                        values: np.ndarray, *, pad_pitches: float = 2.0) -> np.ndarray:
+        """Per point (lens plane, with the blur of ``alpha``), the largest of ``values`` (one per fit)
+        over the fits whose blur disk comes within ``pad_pitches`` of the point's own; 0 where none
+        does: how bright a neighbour is whose light could reach it."""
+        sx_m, sy_m, alpha = (np.atleast_1d(np.asarray(v, float)) for v in (sx_m, sy_m, alpha))
+        out = np.zeros(sx_m.size)
+        if len(fit) == 0 or sx_m.size == 0:
+            return out
+        blur, own = self.blur_radius_m(fit.alpha), self.blur_radius_m(alpha)
+        pad = pad_pitches * self.pitch_m
+        hits = cKDTree(np.column_stack([fit.sx_m, fit.sy_m])).query_ball_point(
+            np.column_stack([sx_m, sy_m]), own + blur.max() + pad)
+        for i, near in enumerate(hits):
+            near = np.asarray(near, dtype=np.int64)
+            d = np.hypot(fit.sx_m[near] - sx_m[i], fit.sy_m[near] - sy_m[i])
+            near = near[d < blur[near] + own[i] + pad]
+            if near.size:
+                out[i] = float(np.max(np.asarray(values)[near]))
+        return out
 
     def reject(self, peaks: Peaks, fit: RayFit | None, reason: str) -> None:
         """Record candidates as dropped (when this fitter records them)."""

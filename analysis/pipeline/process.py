@@ -72,10 +72,11 @@ log = logging.getLogger(__name__)
 
 #: Above this fraction of saturated green pixels an exposure holds no usable particle image.
 SATURATED_FRAME_FRACTION = 0.2
-#: A later detection pass keeps blobs at least this fraction of the median first-pass peak height:
-#: left-over light of imperfectly modelled particles makes weak blobs (a fifth of a typical
-#: particle's peak or less); a particle of its own is about as bright as the rest.
+#: A later detection pass keeps blobs at least this fraction of the peak height of the brightest
+#: found particle whose light reaches them: left-over light of imperfectly modelled particles makes
+#: weak blobs (a fifth of that particle's peak or less).
 NEW_PEAK_FRACTION = 0.3
+NEW_FRACTION = 0.2
 
 
 def process(exposure: Exposure, calibration: Calibration, params: PipelineParams | None = None, *,
@@ -265,15 +266,21 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, params: PipelineParam
     rsub = subaperture_image(residual, table, fraction=params.aperture_fraction, blur_sigma_px=params.blur_sigma_px,
                              grid=fitter.grid, samples=rs, cache=fitter.cache)
     new, new_tracks = locate(products(rstack, rsub, out=rstack), alphas, params, threshold=threshold)
-    weak = new.peak_height < NEW_PEAK_FRACTION * np.median(peaks.peak_height)
+    # Left-over light of an imperfectly modelled particle lies within its reach and is weak next to
+    # it; a faint particle of its own may lie anywhere (brightness spreads 10x or more): so each
+    # candidate is weighed against the found particles whose light reaches it, not against all.
+    sx, sy = fitter.grid.to_lens_plane(new.x, new.y)
+    weak = new.peak_height < NEW_PEAK_FRACTION ** 2 * fitter.overlapping_max(sx, sy, new.alpha, fit, peaks.peak_height)
     fitter.reject(new.take(weak), None, "weak_residual")
     new = new.take(~weak)
     log.debug("another pass: %d candidates", len(new))
     if len(new) == 0:
         return None
     new, new_fit = inside(fitter, *refine_peaks(fitter, new, subtract=explained), limits)
-    # As for hidden particles: a new one must fit well and be about as bright as the others.
-    good = (new_fit.residual <= PROBE_RESIDUAL) & (new_fit.intensity >= PROBE_FRACTION * np.median(fit.intensity))
+    # As for hidden particles: a new one must fit well and be a good part as bright as the particles
+    # whose light reaches it.
+    neighbour = fitter.overlapping_max(new_fit.sx_m, new_fit.sy_m, new_fit.alpha, fit, fit.intensity)
+    good = (new_fit.residual <= PROBE_RESIDUAL) & (new_fit.intensity >= NEW_FRACTION * neighbour)
     fitter.reject(new.take(~good), new_fit.take(~good), "weak_residual")
     new, new_fit = new.take(good), new_fit.take(good)
     if len(new) == 0:
