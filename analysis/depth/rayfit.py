@@ -128,16 +128,28 @@ COARSE = FitGrid(depths=33, lateral_pitches=0.4, positions=3, pixel_points=1, te
 FINE = FitGrid(depths=9, lateral_pitches=0.25, positions=3, pixel_points=3, temperature=0.5)
 
 
+def background_per_lens(table: LightFieldTable, background: float | np.ndarray) -> np.ndarray:
+    """The background behind each lens of ``table`` (devignetted DN): one level for all, or already
+    one per lens."""
+    background = np.asarray(background, dtype=np.float64)
+    if background.ndim == 0:
+        return np.full(table.n_lenses, float(background))
+    if background.shape != (table.n_lenses,):
+        raise ValueError(f"background holds {background.size} levels for a table of {table.n_lenses} lenses")
+    return background
+
+
 def unexplained_light(image: np.ndarray, table: LightFieldTable, sx_m: np.ndarray, sy_m: np.ndarray,
-                      radius_m: np.ndarray, *, background: float, explained: np.ndarray, floor: float,
+                      radius_m: np.ndarray, *, background: float | np.ndarray, explained: np.ndarray, floor: float,
                       cache: Cache | None = None) -> np.ndarray:
     """Light above ``floor`` (devignetted DN) left unexplained in the lenses within ``radius_m`` of
-    each point, after taking off ``explained`` (from :func:`render_fits`); one sum per point."""
+    each point, after taking off ``explained`` (from :func:`render_fits`); one sum per point.
+    ``background``: one level, or one per lens of ``table``."""
     idx = table_index(table, cache)
     g = idx.gather(np.asarray(sx_m, float), np.asarray(sy_m, float), np.asarray(radius_m, float))
     flat = np.ascontiguousarray(image).reshape(-1)
     left = ((flat[table.pixel_index[g.ids]].astype(np.float64) - table.black_level) / idx.weight(g.ids)
-            - background - explained[g.ids])
+            - background_per_lens(table, background)[table.lens[g.ids]] - explained[g.ids])
     left = np.where(left > floor, left, 0.0)
     per_lens = np.add.reduceat(left, g.sample_ptr[:-1]) if left.size else np.zeros(0)
     per_lens = np.where(np.diff(g.sample_ptr) > 0, per_lens, 0.0)
@@ -221,7 +233,7 @@ def pixel_footprint(n_side: int, blur_px: float) -> np.ndarray:
 
 
 def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m: np.ndarray,
-             alpha0: np.ndarray, *, background: float, aperture_per_lens_plane: float,
+             alpha0: np.ndarray, *, background: float | np.ndarray, aperture_per_lens_plane: float,
              alpha_half_range: float = 0.004, coarse: FitGrid = COARSE, fine: FitGrid = FINE,
              reach_pitches: float = 1.2, blur_px: float = 0.5, subtract: np.ndarray | None = None,
              own: RayFit | None = None, prior_alpha: np.ndarray | None = None,
@@ -247,9 +259,9 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
     sx0_m, sy0_m, alpha0 : ndarray of shape (n,)
         Starting positions (lens plane, metres) and refocus parameters, e.g. from the
         brightness maxima of the refocused stack.
-    background : float
-        Background (DN above black per unit white weight) to subtract, e.g.
-        :attr:`analysis.lightfield.refocus.Samples.background`.
+    background : float or ndarray of shape (table.n_lenses,)
+        Background (DN above black per unit white weight) to subtract: one level, or one per lens
+        (:meth:`analysis.lightfield.background.BackgroundMap.per_lens`).
     aperture_per_lens_plane : float
         Aperture metres per lens-plane metre between neighbouring micro-images, ``(P + d) / d``
         (:func:`aperture_per_lens_plane`): how far apart two lenses' images of one aperture point are.
@@ -299,9 +311,10 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
     g = idx.gather(sx0, sy0, reach)
     values = np.empty(g.ids.size)
     uv = np.empty((g.ids.size, 2))
-    render_kernels.sample_values(flat, table.pixel_index, table.weight, table.u_m, table.v_m, g.ids, float(table.black_level),
-                       float(background), np.zeros(0, np.float32) if subtract is None else subtract,
-                       subtract is not None, values, uv)
+    render_kernels.sample_values(flat, table.pixel_index, table.weight, table.lens, table.u_m, table.v_m, g.ids,
+                                 float(table.black_level), background_per_lens(table, background),
+                                 np.zeros(0, np.float32) if subtract is None else subtract, subtract is not None,
+                                 values, uv)
     if own is not None:
         if len(own) != n:
             raise ValueError(f"own holds {len(own)} fits for {n} particles")

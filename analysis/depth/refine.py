@@ -95,7 +95,9 @@ class RayFitter:
         The depth fit's table, with the micro-image rims (``analysis.pipeline.tables.FIT_TABLE_RIM_PX``).
     grid : ImageGrid
         Output-image pixels of the candidates.
-    background, aperture_per_lens_plane, alpha_half_range : float
+    background : float or ndarray of shape (table.n_lenses,)
+        One level, or one per lens of ``table``, as :func:`analysis.depth.rayfit.fit_rays` takes it.
+    aperture_per_lens_plane, alpha_half_range : float
         As :func:`analysis.depth.rayfit.fit_rays` takes them.
     coarse : FitGrid
         The coarse pass of every fit (the fine pass: :data:`FINE_GRID` or as a stage asks).
@@ -112,7 +114,7 @@ class RayFitter:
     image: np.ndarray
     table: LightFieldTable
     grid: ImageGrid
-    background: float
+    background: float | np.ndarray
     aperture_per_lens_plane: float
     alpha_half_range: float
     coarse: FitGrid

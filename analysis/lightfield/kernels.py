@@ -53,12 +53,12 @@ def gather_subsample(image_flat, pixel_index, weight, black, stride):  # pragma:
 
 
 @njit(cache=True)
-def value_histogram(values, weights, beta, divide, lo, inv_width, hist):  # pragma: no cover - numba
-    """Histogram of ``values - beta * weights`` (divided by ``weights`` if ``divide``); bin ``b``
+def value_histogram(values, weights, betas, divide, lo, inv_width, hist):  # pragma: no cover - numba
+    """Histogram of ``values - betas * weights`` (divided by ``weights`` if ``divide``); bin ``b``
     is centred on ``lo + b / inv_width``, values outside go to the end bins."""
     n_bins = hist.size
     for k in range(values.size):
-        val = values[k] - beta * weights[k]
+        val = values[k] - betas[k] * weights[k]
         if divide:
             val = val / weights[k]
         b = int(math.floor((val - lo) * inv_width + 0.5))
@@ -70,9 +70,9 @@ def value_histogram(values, weights, beta, divide, lo, inv_width, hist):  # prag
 
 
 @njit(parallel=True, cache=True)
-def select_samples(image_flat, pixel_index, weight, black, beta, threshold, n_chunks):  # pragma: no cover
-    """Samples with ``raw - black - beta * weight > threshold``, as (ids int32, values float32),
-    in table order.
+def select_samples(image_flat, pixel_index, weight, lens, black, beta_lens, threshold, n_chunks):  # pragma: no cover
+    """Samples with ``raw - black - beta_lens[lens] * weight > threshold``, as (ids int32, values
+    float32), in table order.
 
     One pass over the image: chunk ``c`` writes its hits from the start of its own stretch of
     a full-length buffer (only the touched pages of which are ever backed by memory), then the
@@ -86,7 +86,7 @@ def select_samples(image_flat, pixel_index, weight, black, beta, threshold, n_ch
     for c in prange(n_chunks):
         pos = c * step
         for k in range(c * step, min(n, (c + 1) * step)):
-            val = image_flat[pixel_index[k]] - black - beta * weight[k]
+            val = image_flat[pixel_index[k]] - black - beta_lens[lens[k]] * weight[k]
             if val > threshold:
                 all_ids[pos] = k
                 all_values[pos] = val

@@ -56,6 +56,7 @@ from . import kernels as kern
 from analysis.camera.model import Optics
 from analysis.errors import ParameterError
 from analysis.camera.image_grid import ImageGrid
+from .background import BackgroundMap
 from .table import NORMALISATION, LightFieldTable
 
 __all__ = ["ImageGrid", "Samples", "default_alphas", "alphas_for_depth_range", "select_samples",
@@ -86,9 +87,10 @@ class Samples:
     values : ndarray (M,), float32
         ``raw - black_level - background * weight`` of those samples.
     background : float
-        Diffuse background (plasma glow) in DN of a median-weight pixel; subtracted from each
-        sample in proportion to its weight, as a uniform glow lights the sensor like the white
-        image does.
+        Diffuse background (plasma glow) in DN of a median-weight pixel: the median of ``levels``.
+    levels : ndarray (table.n_lenses,), float64
+        The background behind each lens, subtracted from each of its samples in proportion to
+        the sample's weight, as extended light lights a micro-image like the white image does.
     sigma : float
         Robust noise of the background-subtracted samples (1.4826 * MAD), DN.
     threshold : float
@@ -100,6 +102,7 @@ class Samples:
     background: float
     sigma: float
     threshold: float
+    levels: np.ndarray
 
 
 def default_alphas(n: int = 40, lo: float = 0.987, hi: float = 1.013) -> np.ndarray:
@@ -150,7 +153,7 @@ def _check_image(image: np.ndarray, table: LightFieldTable) -> np.ndarray:
 
 
 def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: float | None = None,
-                   background: float | None = None, noise_sigmas: float | None = 3.0) -> Samples:
+                   background: float | BackgroundMap | None = None, noise_sigmas: float | None = 3.0) -> Samples:
     """Read the table's samples from a raw image, subtract the background, keep those above the noise.
 
     Parameters
@@ -160,10 +163,12 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
     table : LightFieldTable
     black_level : float, optional
         Raw black level; default ``table.black_level``.
-    background : float, optional
-        Diffuse glow in DN of a median-weight pixel, subtracted as ``background * weight`` from
-        each sample; default: the median of ``(raw - black) / weight`` over all samples (robust:
-        particles light a small fraction of them). Pass ``0.0`` to keep everything.
+    background : float or BackgroundMap, optional
+        Extended light in DN of a median-weight pixel, subtracted as ``level * weight`` from each
+        sample: one level (a diffuse glow), or a level per lens
+        (:func:`analysis.lightfield.background.estimate_background`); default: the median of
+        ``(raw - black) / weight`` over all samples (robust: particles light a small fraction of
+        them). Pass ``0.0`` to keep everything.
     noise_sigmas : float or None
         Keep samples more than this many robust standard deviations above the background;
         ``None`` keeps every sample (dense, slower, same normalisation).
@@ -179,13 +184,14 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
     """
     flat = _check_image(image, table)
     black = table.black_level if black_level is None else float(black_level)
-    values, weights = kern.gather_subsample(flat, table.pixel_index, table.weight, float(black), _stride(table))
+    stride = _stride(table)
+    values, weights = kern.gather_subsample(flat, table.pixel_index, table.weight, float(black), stride)
     if background is None:
         hist = np.zeros(_HIST_BINS, dtype=np.int64)
-        kern.value_histogram(values, weights, 0.0, True, _HIST_LO, 1.0 / _HIST_BIN_DN, hist)
-        bg, _ = _median_and_sigma(hist, _HIST_LO, _HIST_BIN_DN)
-    else:
-        bg = float(background)
+        kern.value_histogram(values, weights, np.zeros(values.size), True, _HIST_LO, 1.0 / _HIST_BIN_DN, hist)
+        background = _median_and_sigma(hist, _HIST_LO, _HIST_BIN_DN)[0]
+    levels = (background.per_lens(table) if isinstance(background, BackgroundMap)
+              else np.full(table.n_lenses, float(background)))
     if noise_sigmas is None:
         threshold = -np.inf
         sigma = float("nan")
@@ -193,12 +199,14 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
         if noise_sigmas < 0:
             raise ParameterError(f"noise_sigmas must be >= 0 or None, got {noise_sigmas}")
         hist = np.zeros(_HIST_BINS, dtype=np.int64)
-        kern.value_histogram(values, weights, float(bg), False, _HIST_LO, 1.0 / _HIST_BIN_DN, hist)
+        kern.value_histogram(values, weights, levels[table.lens[::stride][:values.size]], False, _HIST_LO,
+                             1.0 / _HIST_BIN_DN, hist)
         centre, sigma = _median_and_sigma(hist, _HIST_LO, _HIST_BIN_DN)
         threshold = centre + float(noise_sigmas) * max(sigma, _MIN_SIGMA_DN)
-    ids, values = kern.select_samples(flat, table.pixel_index, table.weight, float(black), float(bg),
+    ids, values = kern.select_samples(flat, table.pixel_index, table.weight, table.lens, float(black), levels,
                                       float(threshold), numba.get_num_threads())
-    return Samples(ids=ids, values=values, background=float(bg), sigma=float(sigma), threshold=float(threshold))
+    return Samples(ids=ids, values=values, background=float(np.median(levels)), sigma=float(sigma),
+                   threshold=float(threshold), levels=levels)
 
 
 def _stride(table: LightFieldTable) -> int:
@@ -424,7 +432,7 @@ def _sub_normalisation(table: LightFieldTable, fraction: float, method: str, gri
 
 def refocus_stack(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray | None = None, *,
                   grid: ImageGrid | None = None, method: str = DEFAULT_METHOD, black_level: float | None = None,
-                  background: float | None = None, noise_sigmas: float | None = 3.0,
+                  background: float | BackgroundMap | None = None, noise_sigmas: float | None = 3.0,
                   min_coverage: float = DEFAULT_MIN_COVERAGE, samples: Samples | None = None,
                   out: np.ndarray | None = None, cache: Cache | None = None) -> np.ndarray:
     """Refocused images ``E_alpha`` of one raw exposure, one per alpha.
@@ -497,7 +505,7 @@ def refocus_stack(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray 
 
 def subaperture_image(image: np.ndarray, table: LightFieldTable, *, fraction: float = 0.3,
                       blur_sigma_px: float = 1.0, grid: ImageGrid | None = None, method: str = DEFAULT_METHOD,
-                      black_level: float | None = None, background: float | None = None,
+                      black_level: float | None = None, background: float | BackgroundMap | None = None,
                       noise_sigmas: float | None = 3.0, min_coverage: float = DEFAULT_MIN_COVERAGE,
                       samples: Samples | None = None, cache: Cache | None = None) -> np.ndarray:
     """Image through the central ``fraction`` of the aperture (digital stopping-down), blurred.

@@ -58,6 +58,7 @@ from analysis.detection.curves import Peaks, Tracks
 from analysis.detection.rejections import Rejections
 from analysis.errors import CameraMismatchError, MetadataError
 from analysis.formats.exposure import Exposure, read_exposure
+from analysis.lightfield.background import BackgroundMap, estimate_background
 from analysis.lightfield.refocus import default_alphas, products, refocus_stack, select_samples, subaperture_image
 from analysis.lightfield.table import LightFieldTable
 
@@ -161,14 +162,16 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         warnings.append(f"{count} green pixels are saturated; the brightest particles' brightness is clipped")
 
     with clock.stage("samples"):
-        samples = select_samples(exposure.image, table, noise_sigmas=params.noise_sigmas)
+        background = estimate_background(exposure.image, table)
+        samples = select_samples(exposure.image, table, background=background, noise_sigmas=params.noise_sigmas)
         threshold = product_threshold(samples.sigma, params)
     with clock.stage("subaperture"):
         sub = subaperture_image(exposure.image, table, fraction=params.aperture_fraction,
                                 blur_sigma_px=params.blur_sigma_px, grid=grid, samples=samples, cache=cache)
+    fit_table = get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
     fitter = RayFitter(
-        exposure.image, get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX), grid,
-        background=samples.background, aperture_per_lens_plane=aperture_per_lens_plane(optics),
+        exposure.image, fit_table, grid, background=background.per_lens(fit_table),
+        aperture_per_lens_plane=aperture_per_lens_plane(optics),
         alpha_half_range=params.refine_alpha_range,
         coarse=FitGrid(depths=params.fit_depths, lateral_pitches=COARSE_LATERAL_PITCHES,
                        positions=params.fit_lateral, pixel_points=1, temperature=COARSE_TEMPERATURE),
@@ -206,7 +209,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
             peaks, fit = inside(fitter, *refine_peaks(fitter, peaks, shadow_probe=params.shadow_probe), limits)
         with clock.stage("more_passes"):
             for _ in range(params.passes - 1):
-                found = _look_again(fitter, table, params, alphas, limits, threshold, peaks, tracks, fit)
+                found = _look_again(fitter, table, background, params, alphas, limits, threshold, peaks, tracks, fit)
                 if found is None:
                     break
                 peaks, tracks, fit = found
@@ -249,9 +252,9 @@ def _survey(image: np.ndarray, table: LightFieldTable, samples, sub: np.ndarray,
     return range_of_peaks(alpha, survey, n_slices=params.n_slices)
 
 
-def _look_again(fitter: RayFitter, table: LightFieldTable, params: PipelineParams, alphas: np.ndarray,
-                limits: tuple[float, float], threshold: float, peaks: Peaks, tracks: Tracks, fit: RayFit
-                ) -> tuple[Peaks, Tracks, RayFit] | None:
+def _look_again(fitter: RayFitter, table: LightFieldTable, background: BackgroundMap, params: PipelineParams,
+                alphas: np.ndarray, limits: tuple[float, float], threshold: float, peaks: Peaks, tracks: Tracks,
+                fit: RayFit) -> tuple[Peaks, Tracks, RayFit] | None:
     """One more detection pass on the raw image with the found particles' light taken off.
 
     Crowded clusters: blobs of neighbours merge in the product images. Returns the particles with
@@ -261,7 +264,7 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, params: PipelineParam
         return None
     explained = fitter.render(fit)
     residual = residual_image(fitter.image, fitter.table, explained)
-    rs = select_samples(residual, table, noise_sigmas=params.noise_sigmas)
+    rs = select_samples(residual, table, background=background, noise_sigmas=params.noise_sigmas)
     rstack = refocus_stack(residual, table, alphas, grid=fitter.grid, samples=rs, cache=fitter.cache)
     rsub = subaperture_image(residual, table, fraction=params.aperture_fraction, blur_sigma_px=params.blur_sigma_px,
                              grid=fitter.grid, samples=rs, cache=fitter.cache)
