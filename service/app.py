@@ -147,6 +147,13 @@ def create_app(settings: Settings | None = None, *, camera: Any = None, store: S
     app.add_middleware(UrlLengthLimit)
     for module in (exposures, jobs, runs, events, camera_routes, calibrations, health):
         app.include_router(module.router)
+
+    # Routes under /static/ come before the /static mount, which would take their paths.
+    @app.get("/static/vendor/plotly.min.js", include_in_schema=False)
+    async def plotly_js() -> FileResponse:
+        return FileResponse(PLOTLY_JS, media_type="text/javascript",
+                            headers={"Cache-Control": "public, max-age=86400"})
+
     app.mount("/static/docs", StaticFiles(directory=DOCS_ASSETS), name="docs-assets")
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 
@@ -162,11 +169,6 @@ def create_app(settings: Settings | None = None, *, camera: Any = None, store: S
         return get_redoc_html(openapi_url="/openapi.json", title="plenodust API",
                               redoc_js_url="/static/docs/redoc.standalone.js",
                               redoc_favicon_url="/static/favicon.svg", with_google_fonts=False)
-
-    @app.get("/static/vendor/plotly.min.js", include_in_schema=False)
-    async def plotly_js() -> FileResponse:
-        return FileResponse(PLOTLY_JS, media_type="text/javascript",
-                            headers={"Cache-Control": "public, max-age=86400"})
 
     @app.get("/", include_in_schema=False)
     async def dashboard() -> FileResponse:

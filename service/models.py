@@ -74,7 +74,9 @@ class ExposureInfo(BaseModel):
     created_at: float
     job: Job | None
     raw_kept: bool = Field(description="false once the raw files were removed under PLENODUST_RAW_RETENTION")
-    slices: int = Field(description="refocused slices kept for viewing")
+    slices: int = Field(description="refocused slices kept for viewing (GET .../slices/{k})")
+    slice_alpha: list[float] = Field(description="the alpha of each kept slice")
+    slice_binning: int = Field(description="output-image pixels per slice pixel along each axis")
     warnings: list[str]
     timings: dict[str, float] = Field(description="seconds per pipeline stage")
 

@@ -18,8 +18,10 @@ from service.results import JobOutput, JobTask
 
 log = logging.getLogger(__name__)
 
-# Slices kept for the dashboard's viewer: every n-th of the stack, at most this many.
-MAX_VIEW_SLICES = 12
+# Slices kept for the dashboard's viewer: all of them up to this many (every n-th beyond), so
+# the viewer can show each particle at its own depth; shrunk to MAX_VIEW_SIDE they cost a few
+# hundred kB per exposure.
+MAX_VIEW_SLICES = 64
 # Longest side of a kept slice, in pixels (the viewer does not need full resolution).
 MAX_VIEW_SIDE = 512
 

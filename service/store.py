@@ -228,6 +228,13 @@ class Store:
         with h5py.File(self.result_path(exposure_id), "r") as f:
             return int(f["entry/slices/image"].shape[0]) if "entry/slices" in f else 0
 
+    def slice_info(self, exposure_id: str) -> tuple[np.ndarray, int]:
+        """The ``alpha`` of each kept slice and their binning (empty and 1 if none were kept)."""
+        with h5py.File(self.result_path(exposure_id), "r") as f:
+            if "entry/slices" not in f:
+                return np.empty(0), 1
+            return f["entry/slices/alpha"][()], int(f["entry/slices"].attrs.get("binning", 1))
+
     def read_slice(self, exposure_id: str, index: int) -> tuple[float, np.ndarray, int] | None:
         """``(alpha, image, binning)`` of one kept slice, or None; ``binning`` is output-image
         pixels per slice pixel."""

@@ -156,13 +156,15 @@ def _result_or_409(state: State, exposure_id: str):
 async def get_exposure(exposure_id: str, state: State) -> dict:
     record = _exposure_or_404(state, exposure_id)
     job = state.queue.for_exposure(exposure_id)
-    slices, provenance = 0, {}
+    slice_alpha, binning, provenance = [], 1, {}
     if state.store.has_result(exposure_id):
-        slices = await asyncio.to_thread(state.store.slice_count, exposure_id)
+        alphas, binning = await asyncio.to_thread(state.store.slice_info, exposure_id)
+        slice_alpha = alphas.tolist()
         provenance = await asyncio.to_thread(state.store.read_provenance, exposure_id)
     return {"id": record.id, "run": record.run, "frame": record.frame, "kind": record.kind,
             "source": record.source, "serial": record.serial, "created_at": record.created_at,
-            "job": job.public() if job else None, "raw_kept": record.raw_kept, "slices": slices,
+            "job": job.public() if job else None, "raw_kept": record.raw_kept, "slices": len(slice_alpha),
+            "slice_alpha": slice_alpha, "slice_binning": binning,
             # What the pipeline wants a user to know (nothing found, saturation, ...) and its timings.
             "warnings": provenance.get("warnings", []), "timings": provenance.get("timings", {})}
 
