@@ -83,7 +83,7 @@ def _worker_cache(directory: Path | None):
 _cache = None
 
 
-def run_task(task: JobTask, progress: Callable[[float], None] | None = None) -> JobOutput:
+def run_task(task: JobTask, progress: Callable[[float, str], None] | None = None) -> JobOutput:
     """Process one exposure and return its particle table and what the dashboard shows.
 
     Raises
@@ -99,7 +99,8 @@ def run_task(task: JobTask, progress: Callable[[float], None] | None = None) -> 
                                exposure.serial)
     params = _params(task.parameters)
     cache_dir = Path(task.calibration_cache_dir) if task.calibration_cache_dir else None
-    report = None if progress is None else (lambda fraction, stage: progress(fraction))
+    # progress(fraction, stage): the fraction weighted by the stages' cost, and the stage's name.
+    report = progress
     result = process(exposure, calibration, params, keep_stack=task.keep_slices, progress=report,
                      cache=_worker_cache(cache_dir))
     output = JobOutput(columns={name: np.asarray(col) for name, col in result.particles.items()},

@@ -34,9 +34,12 @@ def run_json(capsys, argv):
 
 def test_process_one_exposure_to_csv(sim, tmp_path, capsys):
     out = tmp_path / "particles.csv"
-    code, summary, _ = run_json(capsys, ["process", str(sim / "IMG_0001.lfp"), "--calibration", str(sim / "calibration"),
-                                         "--out", str(out), "--cache", str(tmp_path / "cache")])
+    code, summary, err = run_json(capsys, ["process", str(sim / "IMG_0001.lfp"), "--calibration", str(sim / "calibration"),
+                                           "--out", str(out), "--cache", str(tmp_path / "cache")])
     assert code == 0
+    # Off a terminal it still says what it does: the kernels first, then each stage by name.
+    assert "loading the analysis kernels" in err
+    assert "IMG_0001.lfp (1/1): refocus" in err and "IMG_0001.lfp (1/1): refine" in err, err
     table = read_csv(out)
     assert list(table)[:8] == ["particle", "x", "y", "alpha", "X", "Y", "Z", "brightness"]
     assert set(COLUMNS) == set(table)

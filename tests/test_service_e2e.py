@@ -117,6 +117,9 @@ def test_upload_over_http_is_processed_matches_truth_and_is_announced(server, si
         stream.wait_for(lambda kind, data: kind == "result" and data["exposure_id"] == body["exposure_id"])
         states = [d["state"] for k, d in stream.events if k == "job" and d.get("id") == body["job_id"]]
         assert states[0] == "queued" and states[-1] == "done" and "running" in states
+        # Progress names the pipeline's stages as they run.
+        stages = {d.get("stage") for k, d in stream.events if k == "job" and d.get("id") == body["job_id"]}
+        assert {"refocus", "refine"} <= stages, stages
     finally:
         stream.close()
     table = httpx.get(server.url + f"/api/v1/exposures/{body['exposure_id']}/particles").json()
