@@ -108,6 +108,10 @@ def create_app(settings: Settings | None = None, *, camera: Any = None, store: S
 
         async def start_runner() -> None:
             # Jobs wait in the queue until the executor is up (pool warm, cluster reachable).
+            started = time.monotonic()
+            log.info("starting %d worker(s) (%s): loading the compiled analysis kernels (a few seconds; "
+                     "about a minute if they were never compiled: `make setup` compiles them)",
+                     settings.workers, settings.executor)
             while True:
                 try:
                     await the_executor.start()
@@ -118,6 +122,7 @@ def create_app(settings: Settings | None = None, *, camera: Any = None, store: S
                               settings.executor, state.executor_error)
                     await asyncio.sleep(5)
             state.executor_error = None
+            log.info("workers ready after %.1f s; processing", time.monotonic() - started)
             runner.start()
 
         tasks.append(asyncio.create_task(start_runner(), name="runner-start"))

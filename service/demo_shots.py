@@ -118,7 +118,7 @@ class DemoShots:
             while not self._stop.wait(max(0.0, start_mono + k * every_s - time.monotonic())):
                 try:
                     name = self.shoot(start_wall + timedelta(seconds=k * every_s))
-                    log.info("demo camera: new shot %s", name)
+                    log.debug("demo camera: new shot %s", name)
                 except Exception:
                     log.exception("demo camera: rendering a shot failed")
                 late = int((time.monotonic() - start_mono) // every_s) - k

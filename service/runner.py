@@ -242,6 +242,8 @@ class JobRunner:
             log.warning("job %s finished after its lease was lost; another run records it", job.id)
             return
         now = time.time()
+        if not self.metrics.value("plenodust_jobs_total", outcome="done"):
+            log.info("first result: run %s frame %d, %d particles", record.run, record.frame, output.particles)
         self.metrics.inc("plenodust_jobs_total", outcome="done")
         self.metrics.observe_job(output.seconds, now - record.created_at)
         done = self.queue.get(job.id)

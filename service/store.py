@@ -117,7 +117,7 @@ class Store:
             with self.db.write() as conn:
                 conn.execute("UPDATE exposures SET raw_removed_at = ? WHERE id = ?", (time.time(), row["id"]))
         if rows:
-            log.info("removed the raw files of %d exposure(s) beyond the newest %d", len(rows), keep)
+            log.debug("removed the raw files of %d exposure(s) beyond the newest %d", len(rows), keep)
         return len(rows)
 
     def register(self, conn: sqlite3.Connection, exposure_id: str, *, run: str, kind: str,

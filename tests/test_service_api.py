@@ -308,4 +308,6 @@ def test_docs_and_dashboard_are_served(client) -> None:
     assert "multipart/form-data" in paths["/api/v1/exposures"]["post"]["requestBody"]["content"]
     page = client.get("/")
     assert page.headers["content-type"].startswith("text/html") and "/static/app.js" in page.text
-    assert client.get("/static/plot.js").status_code == 200
+    assert client.get("/static/app.js").status_code == 200
+    plotly = client.get("/static/vendor/plotly.min.js")  # the dashboard's plots, from the service itself
+    assert plotly.status_code == 200 and len(plotly.content) > 1_000_000

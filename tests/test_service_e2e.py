@@ -343,6 +343,9 @@ def test_make_run_demo_shows_clusters_at_once_takes_shots_on_request_and_tidies_
     time.sleep(0.2)
     output = "".join(lines)
     assert "Traceback" not in output, output
+    # It said what it was doing while the first result was on its way.
+    assert "loading the compiled analysis kernels" in output and "workers ready after" in output
+    assert "first result: run demo frame" in output
     assert not data_dir.exists() and f"removed {data_dir}" in output  # a temporary demo leaves nothing behind
 
 

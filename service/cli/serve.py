@@ -47,6 +47,8 @@ def serve(settings, *, camera=None, announce: str | None = None) -> int:
 
     from service.limits import HEAD_LIMIT_BYTES, http_protocol_class
 
+    # The service says what it does at start (workers warming up, ready) at the log level asked.
+    logging.getLogger("service").setLevel(settings.log_level.upper())
     app = create_app(settings, camera=camera)
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=settings.log_level,
                             # Open event streams must not hold a shutdown for long.
