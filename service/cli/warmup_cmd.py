@@ -86,6 +86,11 @@ def warm_up_kernels(say: Callable[[str], None]) -> float:
                            calibration_cache_dir=str(Path(tmp) / "cache"), keep_slices=True)
             output = run_task(task, progress)
         say(f"  analysis ready ({time.perf_counter() - t:.1f} s, {output.particles} particles found)")
+        # What each service worker runs at start, so its types are in the cache as well.
+        from service.pipeline_task import warm_up
+
+        with still_working(say, "compiling what a service worker loads at start"):
+            warm_up()
     return time.perf_counter() - start
 
 
