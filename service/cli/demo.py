@@ -16,8 +16,9 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 # The simulated cluster's refocus range is known (the simulator's ball around the focus), so the
-# demo gives it rather than have each job survey the exposure for it: on 2 cores the survey takes
-# a 1024 px shot from about 1 s to 10-20 s, longer than the time between shots.
+# demo gives it rather than have each job survey the exposure for it: the shots' processing time
+# then does not depend on the survey (which once took 10-20 s a shot on 2 cores, longer than the
+# time between shots). Drop this to show the survey in the demo.
 DEMO_PIPELINE = {"alpha_min": 0.987, "alpha_max": 1.013}
 
 
