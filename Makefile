@@ -9,15 +9,24 @@ export NUMBA_CACHE_DIR ?= $(CURDIR)/.cache/numba
 
 all: test
 
+# Compiled numba kernels, made again after an install or any change to analysis/: the first
+# demo shot, job or `plenodust process` then loads them in a second instead of compiling.
+KERNELS := .cache/numba/.warm
+ANALYSIS_SOURCES := $(shell find analysis -name '*.py' 2>/dev/null)
+
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
-setup: $(STAMP)
+$(KERNELS): $(STAMP) $(ANALYSIS_SOURCES)
+	$(BIN)/plenodust warm-up
+	@mkdir -p $(dir $@) && touch $@
 
-run: $(STAMP)
+setup: $(STAMP) $(KERNELS)
+
+run: $(STAMP) $(KERNELS)
 	$(BIN)/plenodust demo
 
 # The dashboard test drives headless Chromium: install Debian's when it is missing and we
@@ -29,10 +38,10 @@ browser:
 	        || echo "could not install chromium: the dashboard test will be skipped"; \
 	    else echo "chromium missing (needs root and apt-get): the dashboard test will be skipped"; fi; }
 
-test: $(STAMP) browser
+test: $(STAMP) $(KERNELS) browser
 	$(BIN)/python -m pytest -q
 
-bench: $(STAMP)
+bench: $(STAMP) $(KERNELS)
 	$(BIN)/python bench/run_all.py
 
 clean:

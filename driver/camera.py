@@ -104,6 +104,10 @@ class Camera:
         self._lock = threading.RLock()
         # Set by transports that hear of new pictures (Wi-Fi callbacks) to wake watch().
         self.new_picture = threading.Event()
+        # Whether take_picture() is known to work on this connection: set by open_wifi (the
+        # documented case) and by open_simulated with a shutter; over USB it is unknown
+        # (lytro-f01.md section 6), so it stays False there.
+        self.can_take_pictures = False
 
     # -- lifetime ------------------------------------------------------------------
 

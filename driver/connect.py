@@ -10,7 +10,7 @@ from driver import protocol as p
 from driver.bot import BulkOnlyTransport, TransportSettings, find_device
 from driver.camera import Camera, CameraSettings
 from driver.errors import CameraError, CameraNotFound
-from driver.simulated import Shutter
+from driver.simulated import CameraIdentity, Shutter
 from driver.simulated_usb import SimulatedBackend
 from driver.wifi import WifiTransport
 
@@ -79,21 +79,27 @@ def open_wifi(host: str = "10.100.1.1", port: int = p.WIFI_COMMAND_PORT, *,
             camera.new_picture.set()
 
     transport.listeners.append(wake)
+    camera.can_take_pictures = True
     return camera
 
 
 def open_simulated(folder: str | os.PathLike, *, faults: Iterable[str | tuple[str, int, int | None]] = (),
-                   shutter: Shutter | None = None, **settings: Any) -> Camera:
+                   shutter: Shutter | None = None, serial: str | None = None, **settings: Any) -> Camera:
     """A camera simulated over USB from a folder (see :mod:`driver.simulated`).
 
     ``open_usb(backend=SimulatedBackend(folder))`` with ``verify_id=True`` by default, since the
     simulated camera's ids are SHA-1s of the ``.RAW``. The backend is
     ``camera.transport.device.backend``; ``faults`` are kinds or ``(kind, after, count)``
-    tuples passed to its :meth:`~driver.simulated_usb.SimulatedBackend.inject`.
+    tuples passed to its :meth:`~driver.simulated_usb.SimulatedBackend.inject`. The camera reports
+    ``serial``, by default the one its white images carry (:meth:`CameraFolder.serial`). With a
+    ``shutter`` it can take pictures (``camera.can_take_pictures``).
     """
-    backend = SimulatedBackend(folder, shutter=shutter)
+    extra = {"identity": CameraIdentity(serial=serial)} if serial else {}
+    backend = SimulatedBackend(folder, shutter=shutter, **extra)
     for fault in faults:
         kind, after, count = (fault, 0, 1) if isinstance(fault, str) else fault
         backend.inject(kind, after=after, count=count)
     settings.setdefault("verify_id", True)
-    return open_usb(backend, **settings)
+    camera = open_usb(backend, **settings)
+    camera.can_take_pictures = shutter is not None
+    return camera

@@ -20,6 +20,7 @@ The transport layers (:mod:`driver.simulated_usb`, :mod:`driver.simulated_wifi`)
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import tempfile
@@ -39,6 +40,24 @@ _PICTURE_RE = re.compile(r"^(?P<prefix>IMG_)(?P<number>\d{4})\.RAW$", re.IGNOREC
 _PICTURE_FOLDER = re.compile(r"^I:\\DCIM\\(?P<number>\d{3})(?P<name>[A-Z]+)\\(?P<file>[^\\]+)$", re.IGNORECASE)
 _CALIB_FOLDER = re.compile(r"^C:\\T1CALIB\\(?P<file>MOD_\d{4}\.(RAW|TXT))$", re.IGNORECASE)
 _SIDE_EXTENSIONS = ("RAW", "TXT", "128")
+
+
+def _camera_serial(node: object, parent: str = "") -> str | None:
+    # The first "serialNumber" inside a "camera" object, wherever the JSON puts it.
+    if isinstance(node, dict):
+        value = node.get("serialNumber")
+        if parent == "camera" and isinstance(value, str) and value:
+            return value
+        children = node.items()
+    elif isinstance(node, list):
+        children = ((parent, v) for v in node)
+    else:
+        return None
+    for key, child in children:
+        found = _camera_serial(child, key)
+        if found:
+            return found
+    return None
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
@@ -120,6 +139,31 @@ class CameraFolder:
                 taken=datetime.fromtimestamp(st.st_mtime, tz=timezone.utc)))
         result.sort(key=lambda pic: pic.file_number)
         return result
+
+    def serial(self) -> str | None:
+        """The camera serial its white images carry (``camera.serialNumber`` in a ``MOD_nnnn.TXT``),
+        or None: a camera reports the serial its own files name."""
+        folder = self.root / "calibration"
+        if not folder.is_dir():
+            return None
+        for txt in sorted(folder.glob("MOD_*.TXT")):
+            try:
+                found = _camera_serial(json.loads(txt.read_bytes()))
+            except (OSError, ValueError):
+                continue
+            if found:
+                return found
+        return None
+
+    def remove_oldest(self, *, keep: int) -> list[str]:
+        """Delete all but the newest ``keep`` pictures (a card has room for so many); returns
+        the stems removed. The ``.RAW`` goes first, so a listed picture is always whole."""
+        stems = [f"IMG_{pic.file_number:04d}" for pic in self.pictures()]
+        gone = stems[:max(0, len(stems) - keep)]
+        for stem in gone:
+            for ext in ("RAW", *[e for e in _SIDE_EXTENSIONS if e != "RAW"]):
+                (self.root / f"{stem}.{ext}").unlink(missing_ok=True)
+        return gone
 
     def next_number(self) -> int:
         numbers = [int(m["number"]) for f in self.root.iterdir() if (m := _PICTURE_RE.match(f.name))]
@@ -248,7 +292,8 @@ class SimulatedCamera:
     folder : CameraFolder or path
         The camera's file system.
     identity : CameraIdentity, optional
-        Hardware info and battery level.
+        Hardware info and battery level; by default the serial is that of the folder's white
+        images (:meth:`CameraFolder.serial`), else ``A000000001``.
     download_subcode : {1, 0}
         The byte 2 that download commands must carry (1 as lyli and pyly send).
     not_ready_after_reset : int
@@ -264,7 +309,8 @@ class SimulatedCamera:
                  download_subcode: int = p.DOWNLOAD_SUBCODE_USB, not_ready_after_reset: int = 2,
                  shutter: Shutter | None = None, clock: Callable[[], datetime] | None = None) -> None:
         self.folder = folder if isinstance(folder, CameraFolder) else CameraFolder(folder)
-        self.identity = identity or CameraIdentity()
+        # A camera reports the serial its own files carry (its white images'), as a real one does.
+        self.identity = identity or CameraIdentity(serial=self.folder.serial() or CameraIdentity.serial)
         self.download_subcode = download_subcode
         self.not_ready_after_reset = not_ready_after_reset
         self.shutter = shutter

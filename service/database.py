@@ -67,6 +67,17 @@ CREATE TABLE IF NOT EXISTS settings_kv (
 );
 """
 
+# Columns added after the first release: (table, column, declaration); see Database.__init__.
+ADDED_COLUMNS = [
+    # What a failed job waits for before it runs again by itself: 'calibration' (its camera's
+    # white images) or 'space' (free space on the data disk); NULL for a failure of the input.
+    ("jobs", "waits_for", "TEXT"),
+    # The pipeline stage a running job is in, for the progress shown to users.
+    ("jobs", "stage", "TEXT"),
+    # When the raw files were removed under the raw retention setting (NULL: still kept).
+    ("exposures", "raw_removed_at", "REAL"),
+]
+
 
 class Database:
     """A SQLite file opened in WAL mode, with one connection per thread.
@@ -88,6 +99,15 @@ class Database:
         self._lock = threading.Lock()
         # executescript commits on its own; the statements are idempotent.
         self.connection().executescript(SCHEMA)
+        self._add_missing_columns()
+
+    def _add_missing_columns(self) -> None:
+        # Databases made by an older version lack the columns added since; add them in place.
+        conn = self.connection()
+        for table, column, declaration in ADDED_COLUMNS:
+            present = {row["name"] for row in conn.execute(f"PRAGMA table_info({table})")}
+            if column not in present:
+                conn.execute(f"ALTER TABLE {table} ADD COLUMN {column} {declaration}")
 
     def connection(self) -> sqlite3.Connection:
         """This thread's connection (autocommit; transactions are explicit)."""

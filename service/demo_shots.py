@@ -3,7 +3,10 @@
 The first shot and the white images come from :func:`analysis.simulation.render.write_scenario`;
 each later shot is the same cluster a moment later (thermal jitter, slow drift), rendered
 by the simulator's forward model and added to the simulated camera's file system as the
-camera would store it (``IMG_nnnn.RAW`` + ``.TXT``).
+camera would store it (``IMG_nnnn.RAW`` + ``.TXT``). Shots are taken on a fixed clock (the
+k-th at ``k * every_s`` after the start, its metadata saying so), whatever rendering takes,
+and the card keeps the newest ``keep`` of them. :meth:`DemoShots.shutter` takes one at once
+(the simulated camera's take-picture command).
 """
 
 from __future__ import annotations
@@ -11,7 +14,8 @@ from __future__ import annotations
 import logging
 import shutil
 import threading
-from datetime import datetime, timezone
+import time
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
 import numpy as np
@@ -38,9 +42,12 @@ class DemoShots:
     size : int
         Sensor crop in pixels (multiple of 4); 3280 is a full F01 frame.
     seed : int
+    keep : int
+        Pictures kept on the simulated card; older ones are deleted as new ones come.
     """
 
-    def __init__(self, camera_dir: Path, *, scenario: str = "ball", size: int = 1024, seed: int = 1) -> None:
+    def __init__(self, camera_dir: Path, *, scenario: str = "ball", size: int = 1024, seed: int = 1,
+                 keep: int = 200) -> None:
         self.camera_dir = Path(camera_dir)
         self.scenario_name = scenario
         self.size = size
@@ -49,9 +56,12 @@ class DemoShots:
         self.model = CameraModel.from_metadata(self.metadata)
         self.private = simulated_private_metadata(DEFAULT_SERIAL)
         self.scenario = make_scenario(scenario, seed)
+        self.keep = keep
         self.shots = 0
+        self.serial = DEFAULT_SERIAL  # the camera whose shots and white images these are
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._shooting = threading.Lock()  # the clock and the shutter may both shoot
 
     def prepare(self) -> None:
         """White images and the first shot, through the simulator's own writer."""
@@ -65,8 +75,19 @@ class DemoShots:
         shutil.rmtree(staging)
         self.shots = 1
 
-    def shoot(self) -> str:
-        """Render the next shot and put it on the camera; returns its name (``IMG_nnnn``)."""
+    def shutter(self, folder: CameraFolder | None = None) -> str:
+        """Take a shot now (the simulated camera calls this on its take-picture command)."""
+        return self.shoot()
+
+    def shoot(self, taken_at: datetime | None = None) -> str:
+        """Render the next shot and put it on the camera; returns its name (``IMG_nnnn``).
+
+        ``taken_at`` is the time its metadata records (default: now).
+        """
+        with self._shooting:
+            return self._shoot(taken_at or datetime.now(timezone.utc))
+
+    def _shoot(self, taken_at: datetime) -> str:
         rng = np.random.default_rng([self.seed, self.shots + 1])
         # Thermal jitter plus a slow drift, so consecutive frames differ visibly.
         self.scenario = self.scenario.jittered(rng, sigma_mm=0.03)
@@ -74,22 +95,38 @@ class DemoShots:
         keep = np.flatnonzero(in_view(self.model, particle_truth(self.model, particles)))
         image = render_exposure(self.model, particles.subset(keep), seed=int(rng.integers(2 ** 63)),
                                 background_dn=self.scenario.background_dn)
-        now = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.000Z")
-        metadata = simulated_camera_metadata(lens=DEFAULT_LENS, size=self.size, zulu_time=now)
+        zulu = taken_at.astimezone(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.") + \
+            f"{taken_at.microsecond // 1000:03d}Z"
+        metadata = simulated_camera_metadata(lens=DEFAULT_LENS, size=self.size, zulu_time=zulu)
         exposure = Exposure(image=image, metadata=metadata, private_metadata=self.private)
-        name = CameraFolder(self.camera_dir).add_picture(exposure.raw_bytes(), txt_bytes(exposure))
+        folder = CameraFolder(self.camera_dir)
+        name = folder.add_picture(exposure.raw_bytes(), txt_bytes(exposure))
         self.shots += 1
+        folder.remove_oldest(keep=self.keep)
         return name
 
     def start(self, every_s: float) -> None:
-        """Shoot every ``every_s`` seconds in a background thread until :meth:`stop`."""
+        """Shoot every ``every_s`` seconds, on a fixed clock, in a background thread until :meth:`stop`.
+
+        The k-th shot is due ``k * every_s`` after the start and its metadata records that time;
+        rendering happens in between. If rendering takes longer than ``every_s``, due times are
+        skipped (and said so once) rather than shots piling up.
+        """
         def loop() -> None:
-            while not self._stop.wait(every_s):
+            start_mono, start_wall = time.monotonic(), datetime.now(timezone.utc)
+            k, warned = 1, False
+            while not self._stop.wait(max(0.0, start_mono + k * every_s - time.monotonic())):
                 try:
-                    name = self.shoot()
-                    log.info("demo camera: new shot %s", name)
+                    name = self.shoot(start_wall + timedelta(seconds=k * every_s))
+                    log.debug("demo camera: new shot %s", name)
                 except Exception:
                     log.exception("demo camera: rendering a shot failed")
+                late = int((time.monotonic() - start_mono) // every_s) - k
+                if late > 0 and not warned:
+                    log.warning("demo camera: rendering a shot takes longer than --every %.1f s; shots come "
+                                "every %.1f s", every_s, (late + 1) * every_s)
+                    warned = True
+                k += 1 + max(0, late)
 
         self._thread = threading.Thread(target=loop, name="demo-shots", daemon=True)
         self._thread.start()

@@ -10,6 +10,7 @@ from typing import Annotated, Any
 from fastapi import Depends, Request
 
 from service.database import Database
+from service.disk import DiskGuard
 from service.events import EventBus
 from service.executors import Executor
 from service.metrics import Metrics
@@ -32,6 +33,7 @@ class ServiceState:
     metrics: Metrics
     executor: Executor
     runner: JobRunner
+    disk: DiskGuard
     watcher: Any = None          # service.watcher.CameraWatcher when a camera is configured
     started_at: float = 0.0
     executor_error: str | None = None

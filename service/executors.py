@@ -12,6 +12,7 @@ import logging
 import multiprocessing
 import os
 import queue as queue_mod
+import signal
 import threading
 import time
 import uuid
@@ -25,7 +26,9 @@ from service.results import JobOutput, JobTask
 
 log = logging.getLogger(__name__)
 
-ProgressCallback = Callable[[float], None]
+# Called with the fraction done (weighted by the stages' cost) and, when the pipeline names
+# it, the stage running now.
+ProgressCallback = Callable[[float, "str | None"], None]
 
 
 class WorkerLost(Exception):
@@ -62,6 +65,11 @@ def _exit_with_parent(parent: int) -> None:
 
 def _init_worker(progress_queue: multiprocessing.Queue, do_warm: bool, threads: int) -> None:
     global _progress_queue
+    # Ctrl-C in a terminal reaches the whole process group: the server stops its workers
+    # itself, so a worker ignores it (rather than print a KeyboardInterrupt traceback). The
+    # server spawned it with SIGINT blocked, so none arrived before this line.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     _progress_queue = progress_queue
     threading.Thread(target=_exit_with_parent, args=(os.getppid(),), name="parent-watch", daemon=True).start()
     # Share the cores between the pool's processes instead of each numba kernel using all.
@@ -75,15 +83,23 @@ def _init_worker(progress_queue: multiprocessing.Queue, do_warm: bool, threads: 
 def _pool_run(task: JobTask, key: str) -> JobOutput:
     queue = _progress_queue
 
-    def report(fraction: float) -> None:
+    def report(fraction: float, stage: str | None = None) -> None:
         if queue is not None:
-            queue.put((key, float(fraction)))
+            queue.put((key, float(fraction), stage))
 
     return run_task(task, report)
 
 
 def _pool_ping() -> int:
     return os.getpid()
+
+
+def _submit_with_sigint_blocked(pool: ProcessPoolExecutor, count: int) -> list:
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        return [pool.submit(_pool_ping) for _ in range(count)]
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
 class LocalPoolExecutor:
@@ -125,17 +141,19 @@ class LocalPoolExecutor:
 
     async def _warm_pool(self) -> None:
         # One ping per worker: each submit while none is idle starts another process,
-        # whose initializer imports and compiles the analysis.
-        loop = asyncio.get_running_loop()
+        # whose initializer imports and compiles the analysis. They are submitted (and so the
+        # processes spawned) from a thread that blocks SIGINT: the children start with it
+        # blocked and ignore it from their first line on (see _init_worker).
         pool = self._pool
-        await asyncio.gather(*(loop.run_in_executor(pool, _pool_ping) for _ in range(self.workers)))
+        futures = await asyncio.to_thread(_submit_with_sigint_blocked, pool, self.workers)
+        await asyncio.gather(*(asyncio.wrap_future(f) for f in futures))
         self._warm = True
 
     def _read_progress(self) -> None:
         queue = self._progress_queue
         while queue is not None and not self._stop.is_set():
             try:
-                key, fraction = queue.get(timeout=0.2)
+                key, fraction, stage = queue.get(timeout=0.2)
             except queue_mod.Empty:
                 continue
             except (EOFError, OSError, ValueError):
@@ -143,7 +161,7 @@ class LocalPoolExecutor:
             callback = self._callbacks.get(key)
             if callback is not None:
                 try:
-                    callback(fraction)
+                    callback(fraction, stage)
                 except Exception:  # a progress report must never stop the reader
                     log.exception("progress callback failed")
 
@@ -195,7 +213,8 @@ def _dask_run(task: JobTask, key: str) -> JobOutput:
     from distributed import get_worker
 
     worker = get_worker()
-    return run_task(task, lambda fraction: worker.log_event(DASK_PROGRESS_TOPIC, (key, float(fraction))))
+    return run_task(task, lambda fraction, stage=None: worker.log_event(DASK_PROGRESS_TOPIC,
+                                                                       (key, float(fraction), stage)))
 
 
 def _dask_address(spec: str) -> str:
@@ -226,11 +245,11 @@ class DaskExecutor:
         return self._warm
 
     def _on_progress(self, event: tuple) -> None:
-        _, (key, fraction) = event
+        _, (key, fraction, *rest) = event
         callback = self._callbacks.get(key)
         if callback is not None:
             try:
-                callback(fraction)
+                callback(fraction, rest[0] if rest else None)
             except Exception:  # a progress report must never break the client's event loop
                 log.exception("progress callback failed")
 

@@ -7,8 +7,13 @@ from dataclasses import dataclass
 
 from analysis.errors import AnalysisError
 from analysis.formats.exposure import Exposure, exposure_from_lfp_bytes, exposure_from_raw_pair
+from service.disk import DiskGuard
 from service.queue import Job, JobQueue
 from service.store import ExposureRecord, Store
+
+
+# Room left for an exposure's result (table, curves, slices) besides its raw bytes.
+RESULT_ALLOWANCE_BYTES = 8_000_000
 
 
 class NotAnExposure(Exception):
@@ -42,7 +47,8 @@ def parse_exposure(files: Mapping[str, bytes], *, name: str | None = None) -> Ex
 
 
 def ingest(store: Store, queue: JobQueue, files: Mapping[str, bytes], *, run: str, source: str,
-           serial: str | None = None, exposure: Exposure | None = None) -> Accepted:
+           serial: str | None = None, exposure: Exposure | None = None,
+           guard: DiskGuard | None = None) -> Accepted:
     """Store an exposure and queue its job; the same exposure twice gives the first one back.
 
     Parameters
@@ -57,6 +63,8 @@ def ingest(store: Store, queue: JobQueue, files: Mapping[str, bytes], *, run: st
         Camera serial when the metadata does not carry it (camera ``.TXT`` files do not).
     exposure : Exposure, optional
         The already parsed exposure, to skip parsing again.
+    guard : DiskGuard, optional
+        Refuses the bytes (before writing any) when they would not fit with the free-space margin.
 
     An exposure whose job failed is queued again (same job) when it is sent again.
 
@@ -67,8 +75,13 @@ def ingest(store: Store, queue: JobQueue, files: Mapping[str, bytes], *, run: st
     service.queue.QueueFull
         If the queue is full; nothing is indexed then (the bytes may stay on disk, keyed
         by their SHA-1, ready for the retry).
+    service.disk.NoSpace
+        If the data disk lacks room; nothing is written then.
     """
     exposure = exposure or parse_exposure(files)
+    if guard is not None:
+        # The result file and the run file's rows come later; a few MB more than the raw bytes.
+        guard.require(sum(len(data) for data in files.values()) + RESULT_ALLOWANCE_BYTES, what="this exposure")
     kind = store.put_raw(exposure.sha1, files)
     retried = False
     with store.db.write() as conn:

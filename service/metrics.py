@@ -71,7 +71,9 @@ class Metrics:
             lines.append(f"# HELP {name} {help_text}")
             lines.append(f"# TYPE {name} gauge")
             for labels, value in sorted(samples.items()):
-                lines.append(f"{name}{_labels(labels)} {value:g}")
+                # Whole numbers in full (free bytes), others as %g.
+                shown = str(int(value)) if float(value).is_integer() else f"{value:g}"
+                lines.append(f"{name}{_labels(labels)} {shown}")
         for name, help_text, (counts, total) in (
                 ("plenodust_job_duration_seconds", "Time a worker spent on a job.", hist),
                 ("plenodust_upload_to_result_seconds", "Time from upload to stored result.", lat)):

@@ -18,8 +18,10 @@ from service.results import JobOutput, JobTask
 
 log = logging.getLogger(__name__)
 
-# Slices kept for the dashboard's viewer: every n-th of the stack, at most this many.
-MAX_VIEW_SLICES = 12
+# Slices kept for the dashboard's viewer: all of them up to this many (every n-th beyond), so
+# the viewer can show each particle at its own depth; shrunk to MAX_VIEW_SIDE they cost a few
+# hundred kB per exposure.
+MAX_VIEW_SLICES = 64
 # Longest side of a kept slice, in pixels (the viewer does not need full resolution).
 MAX_VIEW_SIDE = 512
 
@@ -81,7 +83,7 @@ def _worker_cache(directory: Path | None):
 _cache = None
 
 
-def run_task(task: JobTask, progress: Callable[[float], None] | None = None) -> JobOutput:
+def run_task(task: JobTask, progress: Callable[[float, str], None] | None = None) -> JobOutput:
     """Process one exposure and return its particle table and what the dashboard shows.
 
     Raises
@@ -97,7 +99,8 @@ def run_task(task: JobTask, progress: Callable[[float], None] | None = None) -> 
                                exposure.serial)
     params = _params(task.parameters)
     cache_dir = Path(task.calibration_cache_dir) if task.calibration_cache_dir else None
-    report = None if progress is None else (lambda fraction, stage: progress(fraction))
+    # progress(fraction, stage): the fraction weighted by the stages' cost, and the stage's name.
+    report = progress
     result = process(exposure, calibration, params, keep_stack=task.keep_slices, progress=report,
                      cache=_worker_cache(cache_dir))
     output = JobOutput(columns={name: np.asarray(col) for name, col in result.particles.items()},

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from service.disk import NoSpace, is_out_of_space
 from service.queue import QueueFull
 
 log = logging.getLogger(__name__)
@@ -54,8 +56,18 @@ def problem_response(status: int, title: str, detail: str, *, kind: str, instanc
     return JSONResponse(body, status_code=status, headers=headers, media_type=PROBLEM_JSON)
 
 
-def install_problem_handlers(app: FastAPI) -> None:
-    """Answer every error, expected or not, with a problem document."""
+def no_space_response(detail: str, *, instance: str | None, data_dir: str | None,
+                      needed_bytes: int | None = None, free_bytes: int | None = None) -> JSONResponse:
+    """507 Insufficient Storage, naming the data folder and the space needed."""
+    return problem_response(507, "Insufficient storage", detail, kind="insufficient-storage", instance=instance,
+                            data_dir=data_dir, needed_bytes=needed_bytes, free_bytes=free_bytes)
+
+
+def install_problem_handlers(app: FastAPI, *, data_dir: Path | None = None) -> None:
+    """Answer every error, expected or not, with a problem document.
+
+    ``data_dir`` is named in the answer to a write that found the data disk full.
+    """
 
     @app.exception_handler(Problem)
     async def _problem(request: Request, exc: Problem) -> JSONResponse:
@@ -66,6 +78,11 @@ def install_problem_handlers(app: FastAPI) -> None:
     async def _queue_full(request: Request, exc: QueueFull) -> JSONResponse:
         return problem_response(503, "Queue full", str(exc), kind="queue-full", instance=request.url.path,
                                 headers={"Retry-After": str(exc.retry_after_s)})
+
+    @app.exception_handler(NoSpace)
+    async def _no_space(request: Request, exc: NoSpace) -> JSONResponse:
+        return no_space_response(str(exc), instance=request.url.path, data_dir=str(exc.data_dir),
+                                 needed_bytes=exc.needed_bytes, free_bytes=exc.free_bytes)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
@@ -86,6 +103,16 @@ def install_problem_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+        if is_out_of_space(exc):
+            # The disk filled up during the write (the margin check passed just before).
+            # Content-Length is what this request needed; nothing half-written is kept.
+            needed = request.headers.get("content-length")
+            log.warning("%s %s: the data disk is full (%s)", request.method, request.url.path, exc)
+            return no_space_response(
+                f"the data folder {data_dir} ran out of space while storing this request"
+                + (f" ({needed} bytes)" if needed else "") + "; free space on that disk and send it again",
+                instance=request.url.path, data_dir=str(data_dir) if data_dir else None,
+                needed_bytes=int(needed) if needed and needed.isdigit() else None)
         log.exception("unhandled error on %s %s", request.method, request.url.path)
         return problem_response(500, "Internal error", f"{type(exc).__name__}: the server failed; "
                                 "see its log", kind="internal-error", instance=request.url.path)

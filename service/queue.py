@@ -49,15 +49,18 @@ class Job:
     created_at: float
     started_at: float | None
     finished_at: float | None
+    waits_for: str | None = None
+    stage: str | None = None
 
     @classmethod
     def from_row(cls, row: sqlite3.Row) -> Job:
         return cls(**{name: row[name] for name in cls.__dataclass_fields__})
 
     def public(self) -> dict:
-        """The fields the API shows."""
+        """The fields the API shows (:class:`service.models.Job`)."""
         return {"id": self.id, "exposure_id": self.exposure_id, "state": self.state,
-                "progress": self.progress, "error": self.error, "attempts": self.attempts,
+                "progress": self.progress, "stage": self.stage, "error": self.error,
+                "waits_for": self.waits_for, "attempts": self.attempts,
                 "created_at": self.created_at, "started_at": self.started_at,
                 "finished_at": self.finished_at}
 
@@ -148,17 +151,37 @@ class JobQueue:
             if depth >= self.capacity:
                 raise QueueFull(depth, self.capacity, self.retry_after_s)
         row = conn.execute(
-            "UPDATE jobs SET state = 'queued', attempts = 0, error = NULL, progress = 0, started_at = NULL, "
-            "finished_at = NULL WHERE id = ? AND state = 'failed' RETURNING *", (job_id,)).fetchone()
+            "UPDATE jobs SET state = 'queued', attempts = 0, error = NULL, waits_for = NULL, stage = NULL, "
+            "progress = 0, started_at = NULL, finished_at = NULL WHERE id = ? AND state = 'failed' RETURNING *",
+            (job_id,)).fetchone()
         return Job.from_row(row) if row is not None else None
 
-    def retry_failed(self, error_prefix: str) -> list[Job]:
-        """Queue again every failed job whose error starts with ``error_prefix`` (say, once the
-        white images they lacked have arrived)."""
+    def retry_waiting(self, waits_for: str, *, serial: str | None = None) -> list[Job]:
+        """Queue again every failed job that waits for ``waits_for`` (``calibration`` or ``space``).
+
+        With ``serial``, only the jobs of exposures of that camera, or of no known camera, run
+        again (the white images of one camera help no other). Jobs that failed for want of white
+        images before failures were classified (their error names the analysis' exception)
+        count too.
+        """
+        where = "j.waits_for = ?"
+        params: list = [waits_for]
+        if waits_for == "calibration":
+            where = ("(j.waits_for = ? OR j.error LIKE 'NoWhiteImageError%' OR j.error LIKE "
+                     "'CameraMismatchError%')")
+            if serial is not None:
+                where += " AND (e.serial IS NULL OR e.serial = ?)"
+                params.append(serial)
         with self.db.write() as conn:
-            ids = [r["id"] for r in conn.execute("SELECT id FROM jobs WHERE state = 'failed' AND error LIKE ?",
-                                                 (error_prefix.replace("%", "") + "%",))]
+            ids = [r["id"] for r in conn.execute(
+                f"SELECT j.id FROM jobs j JOIN exposures e ON e.id = j.exposure_id "
+                f"WHERE j.state = 'failed' AND {where} ORDER BY j.seq", params)]
             return [job for job_id in ids if (job := self.retry(conn, job_id, check_room=False))]
+
+    def waiting(self, waits_for: str) -> int:
+        """How many failed jobs wait for ``waits_for``."""
+        return self.db.read("SELECT COUNT(*) AS n FROM jobs WHERE state = 'failed' AND waits_for = ?",
+                            (waits_for,))[0]["n"]
 
     # -- consumers -------------------------------------------------------------------
 
@@ -168,13 +191,15 @@ class JobQueue:
         with self.db.write() as conn:
             row = conn.execute(
                 "UPDATE jobs SET state = 'running', lease_owner = ?, lease_expires = ?, "
-                "attempts = attempts + 1, started_at = ?, progress = 0, error = NULL "
+                "attempts = attempts + 1, started_at = ?, progress = 0, stage = NULL, error = NULL, "
+                "waits_for = NULL "
                 "WHERE id = (SELECT id FROM jobs WHERE state = 'queued' ORDER BY seq LIMIT 1) "
                 "RETURNING *", (owner, now + self.lease_s, now)).fetchone()
         return Job.from_row(row) if row is not None else None
 
-    def heartbeat(self, job_id: str, owner: str, *, progress: float | None = None) -> bool:
-        """Extend the lease (and record progress); False when the lease was lost."""
+    def heartbeat(self, job_id: str, owner: str, *, progress: float | None = None,
+                  stage: str | None = None) -> bool:
+        """Extend the lease (and record progress and stage); False when the lease was lost."""
         with self.db.write() as conn:
             if progress is None:
                 cur = conn.execute(
@@ -182,9 +207,9 @@ class JobQueue:
                     (self.clock() + self.lease_s, job_id, owner))
             else:
                 cur = conn.execute(
-                    "UPDATE jobs SET lease_expires = ?, progress = ? "
+                    "UPDATE jobs SET lease_expires = ?, progress = ?, stage = COALESCE(?, stage) "
                     "WHERE id = ? AND lease_owner = ? AND state = 'running'",
-                    (self.clock() + self.lease_s, float(progress), job_id, owner))
+                    (self.clock() + self.lease_s, float(progress), stage, job_id, owner))
             return cur.rowcount == 1
 
     def complete(self, conn: sqlite3.Connection, job_id: str, owner: str) -> bool:
@@ -195,13 +220,17 @@ class JobQueue:
             (self.clock(), job_id, owner))
         return cur.rowcount == 1
 
-    def fail(self, job_id: str, owner: str, error: str) -> bool:
-        """Mark the job failed for good (the input is at fault); False if the lease was lost."""
+    def fail(self, job_id: str, owner: str, error: str, *, waits_for: str | None = None) -> bool:
+        """Mark the job failed; False if the lease was lost.
+
+        ``waits_for`` names what would let it run (``calibration``, ``space``): such a job is
+        queued again by :meth:`retry_waiting` when that arrives. Without it the input is at fault.
+        """
         with self.db.write() as conn:
             cur = conn.execute(
-                "UPDATE jobs SET state = 'failed', error = ?, lease_owner = NULL, lease_expires = NULL, "
-                "finished_at = ? WHERE id = ? AND lease_owner = ? AND state = 'running'",
-                (error, self.clock(), job_id, owner))
+                "UPDATE jobs SET state = 'failed', error = ?, waits_for = ?, lease_owner = NULL, "
+                "lease_expires = NULL, finished_at = ? WHERE id = ? AND lease_owner = ? AND state = 'running'",
+                (error, waits_for, self.clock(), job_id, owner))
             return cur.rowcount == 1
 
     def release(self, job_id: str, owner: str, error: str) -> str | None:

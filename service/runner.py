@@ -13,7 +13,8 @@ import logging
 import time
 from dataclasses import dataclass
 
-from analysis.errors import AnalysisError
+from analysis.errors import AnalysisError, CalibrationError, CameraMismatchError
+from service.disk import DiskGuard, NoSpace, is_out_of_space
 from service.events import EventBus
 from service.executors import Executor, WorkerLost
 from service.metrics import Metrics
@@ -31,19 +32,35 @@ class RunnerConfig:
     idle_poll_s: float = 0.5
     keep_slices: bool = True
     parameters: dict | None = None
+    # Keep the raw files of the newest N exposures only (0: all); see Settings.raw_retention.
+    raw_retention: int = 0
+
+
+# Room a result needs on the data disk (table, curves, slices, run-file rows), checked first.
+RESULT_BYTES = 8_000_000
+
+
+def calibration_hint(serial: str | None) -> str:
+    """How a user supplies a camera's white images (said in the error of a job that lacks them)."""
+    camera = f"camera {serial}" if serial else "the exposure's camera"
+    return (f"supply the white images of {camera}: upload them with POST /api/v1/calibrations (multipart "
+            "MOD_nnnn.RAW + MOD_nnnn.TXT, or data.C.N), or connect the camera to the service (--camera "
+            "usb|wifi:HOST) so it pulls them; `plenodust camera calibration --out DIR` copies them from "
+            "the camera to a folder. This job runs again by itself when they arrive")
 
 
 class JobRunner:
     """Runs queued jobs until stopped."""
 
     def __init__(self, queue: JobQueue, store: Store, executor: Executor, bus: EventBus, metrics: Metrics,
-                 config: RunnerConfig | None = None) -> None:
+                 config: RunnerConfig | None = None, *, guard: DiskGuard | None = None) -> None:
         self.queue = queue
         self.store = store
         self.executor = executor
         self.bus = bus
         self.metrics = metrics
         self.config = config or RunnerConfig()
+        self.guard = guard
         self._wake = asyncio.Event()
         self._tasks: list[asyncio.Task] = []
 
@@ -73,15 +90,31 @@ class JobRunner:
                     self._publish_job(job)
                     if job.state == "queued":
                         self.wake()
+                await self._retry_when_space_returned()
             except Exception:
                 log.exception("re-queueing expired leases failed")
             await asyncio.sleep(interval)
+
+    async def _retry_when_space_returned(self) -> None:
+        if self.guard is None or not await asyncio.to_thread(self.queue.waiting, "space"):
+            return
+        if not await asyncio.to_thread(self.guard.ok):
+            return
+        for job in await asyncio.to_thread(self.queue.retry_waiting, "space"):
+            log.info("job %s: space on the data disk again, queued again", job.id)
+            self._publish_job(job)
+            self.wake()
+
+    def _space_low(self) -> bool:
+        return self.guard is not None and not self.guard.ok()
 
     async def _slot(self, index: int) -> None:
         owner = make_owner(f"/{index}")
         while True:
             try:
-                job = await asyncio.to_thread(self.queue.claim, owner)
+                # With the data disk below its margin no job starts: its result could not be kept.
+                low = await asyncio.to_thread(self._space_low)
+                job = None if low else await asyncio.to_thread(self.queue.claim, owner)
             except Exception:
                 log.exception("claiming a job failed")
                 job = None
@@ -108,16 +141,20 @@ class JobRunner:
             return
         self._publish_job(job, record)
         task = self._task_for(record)
-        progress = {"value": 0.0, "sent": 0.0, "at": 0.0}
+        progress: dict = {"value": 0.0, "stage": None, "sent": 0.0, "at": 0.0}
 
-        def on_progress(fraction: float) -> None:
+        def on_progress(fraction: float, stage: str | None = None) -> None:
+            changed = stage is not None and stage != progress["stage"]
             progress["value"] = fraction
+            if stage is not None:
+                progress["stage"] = stage
             now = time.monotonic()
-            # Throttle: the event stream needs a few updates per job, not one per slice.
-            if fraction - progress["sent"] >= 0.1 or now - progress["at"] >= 0.5:
+            # Throttle: the event stream needs a few updates per job (and each new stage), not one per slice.
+            if changed or fraction - progress["sent"] >= 0.1 or now - progress["at"] >= 0.5:
                 progress["sent"], progress["at"] = fraction, now
                 self.bus.publish("job", {"id": job.id, "exposure_id": job.exposure_id, "state": "running",
-                                         "progress": fraction, "run": record.run, "frame": record.frame})
+                                         "progress": fraction, "stage": progress["stage"], "run": record.run,
+                                         "frame": record.frame})
 
         heartbeat = asyncio.create_task(self._heartbeat(job, owner, progress))
         try:
@@ -125,12 +162,21 @@ class JobRunner:
         except WorkerLost as exc:
             await self._give_back(job, owner, record, str(exc))
             return
+        except (CalibrationError, CameraMismatchError) as exc:
+            # For want of this camera's white images (none, or another camera's): runs again
+            # when they arrive, whatever the analysis called it.
+            await self._fail(job, owner, record, f"{type(exc).__name__}: {exc}. {calibration_hint(record.serial)}",
+                             waits_for="calibration")
+            return
         except AnalysisError as exc:
             await self._fail(job, owner, record, f"{type(exc).__name__}: {exc}")
             return
         except asyncio.CancelledError:
             raise
         except Exception as exc:  # not the input's fault as far as we know: try again
+            if is_out_of_space(exc):
+                await self._fail(job, owner, record, f"NoSpace: {exc}", waits_for="space")
+                return
             log.exception("job %s failed unexpectedly", job.id)
             await self._give_back(job, owner, record, f"{type(exc).__name__}: {exc}")
             return
@@ -159,7 +205,8 @@ class JobRunner:
         while True:
             await asyncio.sleep(self.config.heartbeat_s)
             try:
-                alive = await asyncio.to_thread(self.queue.heartbeat, job.id, owner, progress=progress["value"])
+                alive = await asyncio.to_thread(self.queue.heartbeat, job.id, owner, progress=progress["value"],
+                                                stage=progress["stage"])
             except Exception:
                 log.exception("heartbeat for job %s failed", job.id)
                 continue
@@ -169,6 +216,8 @@ class JobRunner:
 
     async def _finish(self, job: Job, owner: str, record: ExposureRecord, output: JobOutput) -> None:
         def store_it() -> bool:
+            if self.guard is not None:
+                self.guard.require(RESULT_BYTES, what="the result of this job")
             self.store.write_result(record, output)
             self.store.update_run_file(record, output)
             with self.store.db.write() as conn:
@@ -180,6 +229,12 @@ class JobRunner:
         try:
             recorded = await asyncio.to_thread(store_it)
         except Exception as exc:
+            if is_out_of_space(exc):
+                # Nothing half-written is left (files are renamed into place); run it again later.
+                log.warning("job %s: no space to store its result (%s); it runs again when there is", job.id, exc)
+                message = str(exc) if isinstance(exc, NoSpace) else f"{type(exc).__name__}: {exc}"
+                await self._fail(job, owner, record, f"NoSpace: {message}", waits_for="space")
+                return
             log.exception("storing the result of job %s failed", job.id)
             await self._give_back(job, owner, record, f"storing the result failed: {exc}")
             return
@@ -187,6 +242,8 @@ class JobRunner:
             log.warning("job %s finished after its lease was lost; another run records it", job.id)
             return
         now = time.time()
+        if not self.metrics.value("plenodust_jobs_total", outcome="done"):
+            log.info("first result: run %s frame %d, %d particles", record.run, record.frame, output.particles)
         self.metrics.inc("plenodust_jobs_total", outcome="done")
         self.metrics.observe_job(output.seconds, now - record.created_at)
         done = self.queue.get(job.id)
@@ -194,9 +251,15 @@ class JobRunner:
             self._publish_job(done, record)
         self.bus.publish("result", {"exposure_id": record.id, "run": record.run, "frame": record.frame,
                                     "particles": output.particles, "job_id": job.id})
+        if self.config.raw_retention:
+            try:
+                await asyncio.to_thread(self.store.prune_raw, keep=self.config.raw_retention)
+            except OSError:
+                log.exception("removing raw files beyond the retention failed")
 
-    async def _fail(self, job: Job, owner: str, record: ExposureRecord, error: str) -> None:
-        if await asyncio.to_thread(self.queue.fail, job.id, owner, error):
+    async def _fail(self, job: Job, owner: str, record: ExposureRecord, error: str, *,
+                    waits_for: str | None = None) -> None:
+        if await asyncio.to_thread(self.queue.fail, job.id, owner, error, waits_for=waits_for):
             self.metrics.inc("plenodust_jobs_total", outcome="failed")
             self.metrics.inc("plenodust_job_failures_total")
             if job.attempts > 1:  # an earlier attempt may have reached the run file

@@ -30,6 +30,11 @@ class Settings(BaseSettings):
         Processes in the local pool, and jobs run at once.
     api_key : SecretStr or None
         When set, every mutating route needs ``Authorization: Bearer <key>``.
+    min_free_bytes : int
+        Free space kept on the data disk (default 1 GB); below it the service refuses uploads
+        (507) and is not ready.
+    raw_retention : int
+        Keep the raw files of only the newest N exposures (0, the default: keep all).
     """
 
     model_config = SettingsConfigDict(env_prefix="PLENODUST_", extra="ignore")
@@ -60,6 +65,13 @@ class Settings(BaseSettings):
     pipeline: dict[str, Any] = Field(default_factory=dict)
     # Refocused slices kept per exposure for the dashboard's slice viewer.
     keep_slices: bool = True
+    # Free space the service keeps on the data disk. Below it /readyz says not ready, uploads
+    # get 507 and no job starts; jobs that failed for want of space run again once it is back.
+    min_free_bytes: int = Field(1_000_000_000, ge=0)
+    # Raw exposures kept: the newest N exposures keep their raw files, older ones (whose job
+    # is done) lose them and keep their particle tables. 0 keeps every raw file (the default:
+    # a lab's exposures are precious).
+    raw_retention: int = Field(0, ge=0)
     warm_up: bool = True
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 

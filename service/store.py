@@ -55,6 +55,11 @@ class ExposureRecord:
     source: str
     serial: str | None
     created_at: float
+    raw_removed_at: float | None = None
+
+    @property
+    def raw_kept(self) -> bool:
+        return self.raw_removed_at is None
 
     @classmethod
     def from_row(cls, row: sqlite3.Row) -> ExposureRecord:
@@ -99,6 +104,22 @@ class Store:
             write_all_atomic(missing)  # a .RAW appears only with its .TXT
         return kind
 
+    def prune_raw(self, *, keep: int) -> int:
+        """Remove the raw files of all but the newest ``keep`` exposures, where their job is done
+        (their particle tables stay); returns how many exposures lost their raw files."""
+        rows = self.db.read(
+            "SELECT e.id, e.kind FROM exposures e WHERE e.raw_removed_at IS NULL AND e.id NOT IN "
+            "(SELECT id FROM exposures ORDER BY created_at DESC, rowid DESC LIMIT ?) AND "
+            "(SELECT state FROM jobs WHERE exposure_id = e.id ORDER BY seq DESC LIMIT 1) = 'done'", (keep,))
+        for row in rows:
+            for path in self.raw_paths(row["id"], row["kind"]):
+                path.unlink(missing_ok=True)
+            with self.db.write() as conn:
+                conn.execute("UPDATE exposures SET raw_removed_at = ? WHERE id = ?", (time.time(), row["id"]))
+        if rows:
+            log.debug("removed the raw files of %d exposure(s) beyond the newest %d", len(rows), keep)
+        return len(rows)
+
     def register(self, conn: sqlite3.Connection, exposure_id: str, *, run: str, kind: str,
                  source: str, serial: str | None) -> tuple[ExposureRecord, bool]:
         """Index an exposure inside the caller's transaction; ``(record, created)``.
@@ -107,6 +128,9 @@ class Store:
         """
         row = conn.execute("SELECT * FROM exposures WHERE id = ?", (exposure_id,)).fetchone()
         if row is not None:
+            if row["raw_removed_at"] is not None:  # sent again: put_raw has just written its files back
+                row = conn.execute("UPDATE exposures SET raw_removed_at = NULL WHERE id = ? RETURNING *",
+                                   (exposure_id,)).fetchone()
             return ExposureRecord.from_row(row), False
         frame = conn.execute("SELECT COALESCE(MAX(frame) + 1, 0) FROM exposures WHERE run = ?",
                              (run,)).fetchone()[0]
@@ -203,6 +227,13 @@ class Store:
     def slice_count(self, exposure_id: str) -> int:
         with h5py.File(self.result_path(exposure_id), "r") as f:
             return int(f["entry/slices/image"].shape[0]) if "entry/slices" in f else 0
+
+    def slice_info(self, exposure_id: str) -> tuple[np.ndarray, int]:
+        """The ``alpha`` of each kept slice and their binning (empty and 1 if none were kept)."""
+        with h5py.File(self.result_path(exposure_id), "r") as f:
+            if "entry/slices" not in f:
+                return np.empty(0), 1
+            return f["entry/slices/alpha"][()], int(f["entry/slices"].attrs.get("binning", 1))
 
     def read_slice(self, exposure_id: str, index: int) -> tuple[float, np.ndarray, int] | None:
         """``(alpha, image, binning)`` of one kept slice, or None; ``binning`` is output-image
@@ -312,14 +343,19 @@ class Store:
                  "failed": r["failed"] or 0, "pending": r["pending"] or 0, "last": r["last"]}
                 for r in rows]
 
-    def run_exposures(self, run: str) -> list[dict]:
-        """Exposures of a run with their latest job and particle count, by frame."""
+    def run_exposures(self, run: str, *, limit: int = 50, offset: int = 0,
+                      newest_first: bool = False) -> tuple[list[dict], int]:
+        """One page of a run's exposures with their latest job and particle count, by frame;
+        and how many the run has."""
+        total = self.db.read("SELECT COUNT(*) AS n FROM exposures WHERE run = ?", (run,))[0]["n"]
+        order = "DESC" if newest_first else "ASC"
         rows = self.db.read(
             "SELECT e.id, e.frame, e.source, e.created_at, j.id AS job_id, j.state, j.progress, "
             "j.error, r.particles FROM exposures e "
             "LEFT JOIN jobs j ON j.seq = (SELECT MAX(seq) FROM jobs WHERE exposure_id = e.id) "
-            "LEFT JOIN results r ON r.exposure_id = e.id WHERE e.run = ? ORDER BY e.frame", (run,))
-        return [dict(r) for r in rows]
+            f"LEFT JOIN results r ON r.exposure_id = e.id WHERE e.run = ? ORDER BY e.frame {order} "
+            "LIMIT ? OFFSET ?", (run, limit, offset))
+        return [dict(r) for r in rows], total
 
     # -- calibrations ----------------------------------------------------------------
 

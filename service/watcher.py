@@ -22,6 +22,7 @@ from typing import Any
 import driver
 from analysis.errors import AnalysisError
 from analysis.formats.whites import load_white_images
+from service.disk import DiskGuard, NoSpace
 from service.events import EventBus
 from service.ingest import NotAnExposure, ingest, parse_exposure
 from service.metrics import Metrics
@@ -33,6 +34,14 @@ log = logging.getLogger(__name__)
 
 class CameraUnavailable(Exception):
     """No camera is configured, or it cannot be reached now."""
+
+
+class ShotsNotSupported(Exception):
+    """This camera cannot be told to take a picture over this connection."""
+
+
+class ShotNotSeen(Exception):
+    """The camera took no new picture (none appeared in its list in time)."""
 
 
 def open_camera(spec: str) -> Any:
@@ -70,7 +79,7 @@ class CameraWatcher:
 
     def __init__(self, opener: Callable[[], Any], store: Store, queue: JobQueue, bus: EventBus,
                  metrics: Metrics, *, current_run: Callable[[], str], on_queued: Callable[[], None],
-                 poll_s: float = 2.0, pull_existing: bool = False) -> None:
+                 poll_s: float = 2.0, pull_existing: bool = False, guard: DiskGuard | None = None) -> None:
         self.opener = opener
         self.store = store
         self.queue = queue
@@ -80,6 +89,7 @@ class CameraWatcher:
         self.on_queued = on_queued
         self.poll_s = poll_s
         self.pull_existing = pull_existing
+        self.guard = guard
         self.camera: Any = None
         self.state = "connecting"
         self.serial: str | None = None
@@ -95,7 +105,8 @@ class CameraWatcher:
     def status(self) -> dict:
         return {"configured": True, "state": self.state, "serial": self.serial, "firmware": self.firmware,
                 "battery": self.battery, "last_error": self.last_error, "last_poll": self.last_poll,
-                "calibrated": bool(self.calibration_serial or (self.serial and self.store.has_calibration(self.serial)))}
+                "calibrated": bool(self.calibration_serial or (self.serial and self.store.has_calibration(self.serial))),
+                "can_take_shots": bool(getattr(self.camera, "can_take_pictures", False))}
 
     def _set_state(self, state: str, error: str | None = None) -> None:
         changed = state != self.state or error != self.last_error
@@ -149,7 +160,9 @@ class CameraWatcher:
             shutil.rmtree(incoming)
             self.calibration_serial = serial
             self.bus.publish("calibration", {"serial": serial, "camera": self.serial, "files": len(pulled)})
-            if self.queue.retry_failed("NoWhiteImageError"):  # uploads that came before the camera
+            # Uploads that came before the camera's white images run now.
+            for job in self.queue.retry_waiting("calibration", serial=serial):
+                self.bus.publish("job", job.public())
                 self.on_queued()
         self.store.db.set_value(f"calibration_pulled:{self.serial}", "1")
 
@@ -180,7 +193,7 @@ class CameraWatcher:
                 except Exception as exc:  # battery is nice to have; a failing query is not fatal
                     log.debug("battery query failed: %s", exc)
                 queued = self._pull_new()
-            except (QueueFull, CameraUnavailable):
+            except (QueueFull, NoSpace, CameraUnavailable):
                 raise
             except Exception as exc:
                 log.warning("camera: %s", exc)
@@ -190,7 +203,7 @@ class CameraWatcher:
                 self.last_poll = time.time()
             return queued
 
-    def _pull_new(self) -> list[dict]:
+    def _pull_new(self, only: set[str] | None = None) -> list[dict]:
         announced = getattr(self.camera, "new_picture", None)
         if announced is not None:
             announced.clear()  # whatever it announced is in the list read below
@@ -198,7 +211,7 @@ class CameraWatcher:
             "SELECT picture FROM camera_pictures WHERE serial = ?", (self.serial,))}
         queued = []
         for pic in self.camera.pictures():
-            if pic.id in seen:
+            if pic.id in seen or (only is not None and pic.id not in only):
                 continue
             with tempfile.TemporaryDirectory(prefix="plenodust-pull-") as tmp:
                 paths = self.camera.pull(pic, Path(tmp))
@@ -211,9 +224,9 @@ class CameraWatcher:
                 log.error("camera picture %s is not a readable exposure: %s; skipped", pic.name, exc)
                 self._mark(pic.id, None)
                 continue
-            # QueueFull propagates: this picture is not marked, so the next poll tries again.
+            # QueueFull and NoSpace propagate: this picture is not marked, so a later poll tries again.
             accepted = ingest(self.store, self.queue, files, run=self.current_run(), source="camera",
-                              serial=self.serial, exposure=exposure)
+                              serial=self.serial, exposure=exposure, guard=self.guard)
             self._mark(pic.id, accepted.exposure.id)
             if accepted.created:
                 self.on_queued()
@@ -223,6 +236,49 @@ class CameraWatcher:
                            "job_id": accepted.job.id, "run": accepted.exposure.run,
                            "frame": accepted.exposure.frame, "created": accepted.created})
         return queued
+
+    def take_shot(self, *, timeout_s: float = 30.0) -> dict:
+        """Take a picture, pull it and queue it; returns what was queued (as :meth:`poll_once`).
+
+        Raises
+        ------
+        ShotsNotSupported
+            Over USB, where the F01's take-picture command is not known to work.
+        ShotNotSeen
+            If no new picture appears in the camera's list within ``timeout_s``.
+        CameraUnavailable
+            If the camera cannot be reached.
+        """
+        with self._lock:
+            try:
+                self._connect()
+                if not getattr(self.camera, "can_take_pictures", False):
+                    raise ShotsNotSupported(
+                        "this camera cannot be told to take a picture: over USB the F01's take-picture "
+                        "command is not known to work (lytro-f01.md, section 6), and a simulated camera needs "
+                        "a shutter (plenodust demo has one). Connect the camera over Wi-Fi (--camera "
+                        "wifi:HOST), or press its shutter and POST /api/v1/camera/pull")
+                # Pictures there before are either pulled already or left alone (first contact).
+                before = {pic.id for pic in self.camera.pictures()}
+                self.camera.take_picture()
+                deadline = time.monotonic() + timeout_s
+                while True:
+                    new = [pic for pic in self.camera.pictures() if pic.id not in before]
+                    if new:
+                        break
+                    if time.monotonic() > deadline:
+                        raise ShotNotSeen(f"the camera took no new picture within {timeout_s:.0f} s")
+                    time.sleep(0.1)
+                queued = self._pull_new(only={pic.id for pic in new})
+            except (QueueFull, NoSpace, ShotsNotSupported, ShotNotSeen):
+                raise
+            except Exception as exc:
+                log.warning("camera: %s", exc)
+                self._disconnect(exc)
+                raise CameraUnavailable(f"the camera cannot be reached: {exc}") from exc
+            if not queued:
+                raise ShotNotSeen("the new picture is not a readable exposure (see the service log)")
+            return queued[-1]
 
     def _mark(self, picture_id: str, exposure_id: str | None) -> None:
         with self.store.db.write() as conn:
@@ -239,6 +295,10 @@ class CameraWatcher:
 
     # -- async loop --------------------------------------------------------------------
 
+    async def shoot_now(self) -> dict:
+        """Take a picture and queue it (``POST /api/v1/camera/shots``)."""
+        return await asyncio.to_thread(self.take_shot)
+
     async def pull_now(self) -> list[dict]:
         """Poll at once (``POST /api/v1/camera/pull``)."""
         return await asyncio.to_thread(self.poll_once)
@@ -252,6 +312,8 @@ class CameraWatcher:
                 backoff = self.poll_s
             except QueueFull:
                 log.info("queue full; camera shots wait on the camera")
+            except NoSpace as exc:
+                log.warning("camera shots wait on the camera: %s", exc)
             except CameraUnavailable:
                 backoff = min(backoff * 2, 30.0)
             except Exception:

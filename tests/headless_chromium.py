@@ -32,11 +32,13 @@ def chromium_path() -> str | None:
 class Browser:
     """One headless Chromium with one page, closed on exit."""
 
-    def __init__(self, executable: str, *, width: int = 1500, height: int = 1000) -> None:
+    def __init__(self, executable: str, *, width: int = 1500, height: int = 1000, offline: bool = False) -> None:
         self.profile = tempfile.mkdtemp(prefix="plenodust-chromium-")
+        # offline: no host but loopback resolves, as on a lab network without internet.
+        network = ["--host-resolver-rules=MAP * ~NOTFOUND , EXCLUDE 127.0.0.1"] if offline else []
         self.proc = subprocess.Popen(
             [executable, "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-             "--hide-scrollbars", "--no-first-run", "--remote-debugging-port=0",
+             "--hide-scrollbars", "--no-first-run", "--remote-debugging-port=0", *network,
              f"--user-data-dir={self.profile}", f"--window-size={width},{height}", "about:blank"],
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         port = self._devtools_port(timeout_s=30)

@@ -12,6 +12,7 @@ import pytest
 from analysis.simulation.scoring import score
 from analysis.formats.particle_table import COLUMNS, read_csv
 from service.cli.main import main
+from analysis.formats.particle_table import csv_text as table_csv
 from simulated_case import mean_nn_mm
 
 SIZE = 900
@@ -33,9 +34,12 @@ def run_json(capsys, argv):
 
 def test_process_one_exposure_to_csv(sim, tmp_path, capsys):
     out = tmp_path / "particles.csv"
-    code, summary, _ = run_json(capsys, ["process", str(sim / "IMG_0001.lfp"), "--calibration", str(sim / "calibration"),
-                                         "--out", str(out), "--cache", str(tmp_path / "cache")])
+    code, summary, err = run_json(capsys, ["process", str(sim / "IMG_0001.lfp"), "--calibration", str(sim / "calibration"),
+                                           "--out", str(out), "--cache", str(tmp_path / "cache")])
     assert code == 0
+    # Off a terminal it still says what it does: the kernels first, then each stage by name.
+    assert "loading the analysis kernels" in err
+    assert "IMG_0001.lfp (1/1): refocus" in err and "IMG_0001.lfp (1/1): refine" in err, err
     table = read_csv(out)
     assert list(table)[:8] == ["particle", "x", "y", "alpha", "X", "Y", "Z", "brightness"]
     assert set(COLUMNS) == set(table)
@@ -50,6 +54,19 @@ def test_process_one_exposure_to_csv(sim, tmp_path, capsys):
                                    "--out", str(out_raw), "--cache", str(tmp_path / "cache")])
     assert code == 0
     assert np.allclose(read_csv(out_raw)["Z"], table["Z"])
+    # One line-ending convention (LF), and the same bytes the API serves for this table.
+    data = out.read_bytes()
+    assert b"\r" not in data and data.count(b"\n") == table["x"].size + 1
+    assert data.decode() == table_csv(read_csv(out))
+
+
+def test_a_batch_csv_has_lf_line_endings(sim, tmp_path, capsys):
+    out = tmp_path / "batch.csv"
+    code, _, _ = run_json(capsys, ["process", str(sim), "--calibration", str(sim / "calibration"), "--out", str(out),
+                                   "--cache", str(tmp_path / "cache"), "--quiet"])
+    assert code == 0
+    data = out.read_bytes()
+    assert b"\r" not in data and data.startswith(b"frame,particle,")
 
 
 def test_batch_folder_to_one_table_with_frames_and_stack(sim, tmp_path, capsys):

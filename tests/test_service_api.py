@@ -277,7 +277,7 @@ def test_the_camera_watcher_queues_each_new_shot_under_the_current_run(client, c
     while (cam := client.get("/api/v1/camera").json())["state"] != "connected" or not cam["calibrated"]:
         assert time.monotonic() < deadline, cam
         time.sleep(0.2)
-    assert cam["serial"] == "A000000001" and cam["battery"] == pytest.approx(87.5)
+    assert cam["serial"] == "A202160042" and cam["battery"] == pytest.approx(87.5)
     assert client.put("/api/v1/runs/current", json={"name": "shots"}, headers=AUTH).json() == {"name": "shots"}
     # The picture already on the camera at first contact is not queued; a new shot is.
     CameraFolder(camera_dir).add_picture(camera_sim.raw[1].read_bytes(), camera_sim.txt[1].read_bytes())
@@ -308,4 +308,6 @@ def test_docs_and_dashboard_are_served(client) -> None:
     assert "multipart/form-data" in paths["/api/v1/exposures"]["post"]["requestBody"]["content"]
     page = client.get("/")
     assert page.headers["content-type"].startswith("text/html") and "/static/app.js" in page.text
-    assert client.get("/static/plot.js").status_code == 200
+    assert client.get("/static/app.js").status_code == 200
+    plotly = client.get("/static/vendor/plotly.min.js")  # the dashboard's plots, from the service itself
+    assert plotly.status_code == 200 and len(plotly.content) > 1_000_000

@@ -57,12 +57,17 @@ def test_dask_workers_report_progress_stage_by_stage(tmp_path, cluster) -> None:
     task = JobTask(exposure_id="0" * 40, raw_paths=(str(sim.lfp[0]),), calibration_dir=str(sim.calibration_dir),
                    calibration_cache_dir=str(tmp_path / "cache"))
     seen: list[float] = []
+    stages: list[str] = []
+
+    def report(fraction: float, stage: str | None) -> None:
+        seen.append(fraction)
+        stages.append(stage)
 
     async def go():
         executor = DaskExecutor(cluster.scheduler_address, warm_up=False)
         await executor.start()
         try:
-            output = await executor.run(task, seen.append)
+            output = await executor.run(task, report)
             # Events travel through the scheduler: give the last ones a moment.
             deadline = time.monotonic() + 10
             while (not seen or seen[-1] < 1.0) and time.monotonic() < deadline:
@@ -75,3 +80,4 @@ def test_dask_workers_report_progress_stage_by_stage(tmp_path, cluster) -> None:
     assert output.particles > 0
     assert any(0.0 < f < 1.0 for f in seen), seen  # stages in between, not just start and end
     assert seen == sorted(seen) and seen[-1] == 1.0
+    assert "refocus" in stages and "refine" in stages  # each report names its stage

@@ -16,6 +16,7 @@ import subprocess
 import sys
 import threading
 import time
+from datetime import datetime
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -116,6 +117,9 @@ def test_upload_over_http_is_processed_matches_truth_and_is_announced(server, si
         stream.wait_for(lambda kind, data: kind == "result" and data["exposure_id"] == body["exposure_id"])
         states = [d["state"] for k, d in stream.events if k == "job" and d.get("id") == body["job_id"]]
         assert states[0] == "queued" and states[-1] == "done" and "running" in states
+        # Progress names the pipeline's stages as they run.
+        stages = {d.get("stage") for k, d in stream.events if k == "job" and d.get("id") == body["job_id"]}
+        assert {"refocus", "refine"} <= stages, stages
     finally:
         stream.close()
     table = httpx.get(server.url + f"/api/v1/exposures/{body['exposure_id']}/particles").json()
@@ -265,29 +269,70 @@ def test_a_dead_worker_process_is_replaced_and_its_job_runs_again(tmp_path: Path
         server.stop()
 
 
-def test_make_run_demo_shows_clusters_at_once(tmp_path: Path) -> None:
+def _zulu_times(camera_dir: Path) -> list[datetime]:
+    times = []
+    for txt in sorted(camera_dir.glob("IMG_*.TXT")):
+        text = txt.read_text()
+        zulu = text[text.index('"zuluTime"'):].split('"')[3]
+        times.append(datetime.strptime(zulu, "%Y-%m-%dT%H:%M:%S.%fZ"))
+    return times
+
+
+def test_make_run_demo_shows_clusters_at_once_takes_shots_on_request_and_tidies_up(tmp_path: Path) -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(ROOT / ".cache" / "numba")}
-    demo = subprocess.Popen([sys.executable, "-m", "service.cli.main", "demo", "--port", str(port), "--data",
-                             str(tmp_path), "--every", "1", "--size", "320"], cwd=ROOT, env=env,
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(ROOT / ".cache" / "numba"), "TMPDIR": str(tmp_path)}
+    demo = subprocess.Popen([sys.executable, "-m", "service.cli.main", "demo", "--port", str(port),
+                             "--every", "1", "--size", "320", "--keep", "4"], cwd=ROOT, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    base = f"http://127.0.0.1:{port}"
+    lines: list[str] = []
     try:
         first_line = demo.stdout.readline()
         assert f"http://127.0.0.1:{port}/" in first_line  # the URL comes first
+        lines.append(demo.stdout.readline())
+        data_dir = Path(lines[-1].split("data in ", 1)[1].split(" ", 1)[0].rstrip(";"))
+        assert data_dir.parent == tmp_path and "removed on exit" in lines[-1]
+        threading.Thread(target=lambda: lines.extend(demo.stdout), daemon=True).start()
         deadline = time.monotonic() + 120
         done = []
         while len(done) < 2:
             assert demo.poll() is None and time.monotonic() < deadline, "demo produced no results"
             try:
-                r = httpx.get(f"http://127.0.0.1:{port}/api/v1/runs/demo/exposures", timeout=5)
+                r = httpx.get(base + "/api/v1/runs/demo/exposures", timeout=5)
                 done = [e for e in r.json().get("items", []) if e["state"] == "done"] if r.status_code == 200 else []
             except httpx.TransportError:
                 pass
             time.sleep(0.3)
         assert {e["source"] for e in done} == {"camera"}
         assert min(e["frame"] for e in done) == 0  # the first shot is queued at once
+        # The header's camera is the one the shots and white images are filed under.
+        camera = httpx.get(base + "/api/v1/camera").json()
+        exposure = httpx.get(base + f"/api/v1/exposures/{done[0]['id']}").json()
+        calibrations = httpx.get(base + "/api/v1/calibrations").json()["items"]
+        assert camera["serial"] == exposure["serial"] == calibrations[0]["serial"] == "A202160042"
+        assert camera["can_take_shots"]
+        # Experiment control: one call takes a shot; its job's result holds the particles.
+        shot = httpx.post(base + "/api/v1/camera/shots", timeout=60)
+        assert shot.status_code == 202, shot.text
+        assert shot.headers["location"] == f"/api/v1/jobs/{shot.json()['job_id']}"
+        job = wait_for_job(lambda path: httpx.get(base + path), shot.json()["job_id"])
+        assert job["state"] == "done"
+        table = httpx.get(base + f"/api/v1/exposures/{shot.json()['exposure_id']}/particles").json()
+        assert table["count"] > 0 and table["run"] == "demo"
+        # Shots come on the clock: each taken a whole number of --every seconds after the first,
+        # the requested one aside; the card keeps the newest --keep.
+        camera_dir = data_dir / "simulated-camera"
+        while len(list(camera_dir.glob("IMG_*.RAW"))) < 4:
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+        times = _zulu_times(camera_dir)
+        assert len(list(camera_dir.glob("IMG_*.RAW"))) == 4
+        steps = [(b - times[0]).total_seconds() for b in times[1:]]
+        on_clock = [step for step in steps if abs(step - round(step)) < 0.002]
+        assert len(on_clock) >= len(steps) - 1, steps  # all but the shot taken on request
+        assert len({round(step) for step in on_clock}) == len(on_clock)
     finally:
         os.killpg(demo.pid, signal.SIGINT)
         try:
@@ -295,4 +340,23 @@ def test_make_run_demo_shows_clusters_at_once(tmp_path: Path) -> None:
         except subprocess.TimeoutExpired:
             os.killpg(demo.pid, signal.SIGKILL)
             demo.wait()
-        demo.stdout.close()
+    time.sleep(0.2)
+    output = "".join(lines)
+    assert "Traceback" not in output, output
+    # It said what it was doing while the first result was on its way.
+    assert "loading the compiled analysis kernels" in output and "workers ready after" in output
+    assert "first result: run demo frame" in output
+    assert not data_dir.exists() and f"removed {data_dir}" in output  # a temporary demo leaves nothing behind
+
+
+def test_ctrl_c_while_workers_warm_up_prints_no_traceback(tmp_path: Path) -> None:
+    # A terminal's Ctrl-C reaches the whole process group: server and pool workers alike.
+    server = ServiceProcess(tmp_path / "data")
+    try:
+        assert server._found.wait(60), server.log()
+        time.sleep(0.5)  # the workers are importing and loading the kernels now
+        os.killpg(server.proc.pid, signal.SIGINT)
+        assert server.proc.wait(timeout=60) in (0, 130)  # 130: ended by SIGINT, as a shell reports it
+    finally:
+        server.stop()
+    assert "Traceback" not in server.log() and "KeyboardInterrupt" not in server.log(), server.log()

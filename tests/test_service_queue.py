@@ -194,5 +194,26 @@ def test_a_failed_job_can_be_queued_again(db: Database) -> None:
     with pytest.raises(QueueFull), db.write() as conn:
         queue.retry(conn, job.id)
     # ... but jobs waiting for white images go back regardless, as accepted data.
-    assert [j.id for j in queue.retry_failed("NoWhiteImageError")] == [job.id]
-    assert queue.retry_failed("NoWhiteImageError") == []
+    assert [j.id for j in queue.retry_waiting("calibration")] == [job.id]
+    assert queue.retry_waiting("calibration") == []
+
+
+def test_jobs_waiting_for_a_calibration_or_space_run_again_when_it_arrives(db: Database) -> None:
+    queue = JobQueue(db, capacity=10)
+    mismatch, wrong_input, full = (_enqueue(queue, name) for name in ("a", "b", "c"))
+    with db.write() as conn:
+        conn.execute("UPDATE exposures SET serial = 'A1' WHERE id = 'a'")
+    for job, error, waits in ((mismatch, "CameraMismatchError: none of the white images is of camera", "calibration"),
+                              (wrong_input, "FormatError: not a picture", None),
+                              (full, "NoSpace: the data disk is full", "space")):
+        queue.claim("w")
+        assert queue.fail(job.id, "w", error, waits_for=waits)
+    assert queue.get(mismatch.id).public()["waits_for"] == "calibration"
+    assert queue.waiting("space") == 1
+    # The white images of one camera re-run the jobs of that camera (or of none known), whatever
+    # the analysis' error class was; never a job whose input was at fault.
+    assert queue.retry_waiting("calibration", serial="OTHER") == []
+    assert [j.id for j in queue.retry_waiting("calibration", serial="A1")] == [mismatch.id]
+    assert [j.id for j in queue.retry_waiting("space")] == [full.id]
+    assert queue.get(wrong_input.id).state == "failed"
+    assert queue.get(full.id).waits_for is None

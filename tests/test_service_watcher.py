@@ -57,7 +57,8 @@ def test_first_contact_pulls_white_images_once_and_skips_old_pictures(camera_dir
     [calibration] = store.calibration_serials()
     assert calibration["serial"] == "A202160042" and calibration["source"] == "camera"
     assert calibration["images"] == len(list((camera_dir / "calibration").iterdir()))
-    assert watcher.status()["serial"] == "A000000001" and watcher.status()["calibrated"]
+    # The camera reports the serial its white images (and shots) carry: the one they are filed under.
+    assert watcher.status()["serial"] == "A202160042" and watcher.status()["calibrated"]
     watcher.close()
 
 
@@ -125,7 +126,7 @@ def test_a_camera_that_goes_away_is_reported_and_counted(camera_dir, parts) -> N
 
 def test_camera_specs_open_the_named_camera(camera_dir) -> None:
     with open_camera(f"simulated:{camera_dir}") as camera:
-        assert camera.info().serial == "A000000001"
+        assert camera.info().serial == "A202160042"
     with SimulatedWifiServer(camera_dir) as server, open_camera(f"wifi:127.0.0.1:{server.port}") as camera:
         assert [pic.name for pic in camera.pictures()] == ["IMG_0001"]
     for bad in ("usb2", "wifi:", "simulated:", "firewire:1"):

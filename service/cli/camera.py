@@ -12,8 +12,7 @@ import json
 import sys
 import threading
 from pathlib import Path
-
-from tqdm import tqdm
+from typing import Any
 
 import driver
 from driver.protocol import Picture
@@ -91,13 +90,15 @@ class _Bars:
 
     def __init__(self, quiet: bool) -> None:
         self.quiet = quiet
-        self.bar: tqdm | None = None
+        self.bar: Any = None
         self.path: str | None = None
 
     def __call__(self, path: str, done: int, total: int) -> None:
         if self.quiet:
             return
         if path != self.path:
+            from tqdm import tqdm  # only here: `camera info` and `list` need no bars
+
             self.close()
             self.path = path
             self.bar = tqdm(total=total, desc=path.rsplit("\\", 1)[-1], unit="B", unit_scale=True,

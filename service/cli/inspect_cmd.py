@@ -11,8 +11,6 @@ import json
 import sys
 from pathlib import Path
 
-from analysis.formats.file_report import inspect_file
-
 EXIT_OK, EXIT_PROBLEMS, EXIT_UNREADABLE = 0, 1, 2
 
 
@@ -26,6 +24,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from analysis.formats.file_report import inspect_file
+
     try:
         report = inspect_file(args.file)
     except OSError as exc:

@@ -183,13 +183,15 @@ def run(args: argparse.Namespace) -> int:
     cache_dir = None if args.no_cache else (args.cache or default_cache_dir())
     calibrations = _Calibrations(args.calibration, cache_dir)
     cache = Cache(directory=cache_dir)
+    say = _Say(quiet=args.quiet)
+    _load_kernels(say)
     bar = _progress_bar(len(files), quiet=args.quiet)
     results, summary, failed = [], [], 0
     for index, path in enumerate(files):
         entry: dict[str, Any] = {"exposure": str(path)}
         try:
             exposure = read_exposure(path)
-            report = None if bar is None else (lambda f, stage, i=index: _advance(bar, i + f))
+            report = _Progress(bar, say, index, len(files), path.name)
             result = process(exposure, calibrations(exposure), params, keep_stack=args.save_stack,
                              progress=report, cache=cache)
         except (AnalysisError, OSError) as exc:
@@ -242,15 +244,55 @@ def _write_one(result: Any, target: Path, *, save_stack: bool) -> None:
         result.to_hdf5(target)
 
 
+class _Say:
+    """Progress lines on stderr, unless --quiet."""
+
+    def __init__(self, *, quiet: bool) -> None:
+        self.quiet = quiet
+
+    def __call__(self, line: str) -> None:
+        if not self.quiet:
+            print(f"plenodust process: {line}", file=sys.stderr, flush=True)
+
+
+def _load_kernels(say: _Say) -> None:
+    # Compiling the kernels takes about half a minute the first time after an install (and a
+    # second to load them after): say so, rather than sit silent in the first exposure.
+    from analysis.pipeline.process import warm_up
+    from service.cli.warmup_cmd import still_working
+
+    with still_working(say, "loading the analysis kernels (compiled on first use, about half a minute "
+                            "after an install; `make setup` or `plenodust warm-up` does it ahead)"):
+        warm_up()
+
+
 def _progress_bar(total: int, *, quiet: bool):
     if quiet or not sys.stderr.isatty():
         return None
     from tqdm import tqdm
 
     return tqdm(total=total, unit="exposure", file=sys.stderr,
-                bar_format="{l_bar}{bar}| {n:.1f}/{total} [{elapsed}<{remaining}]")
+                bar_format="{desc} {percentage:3.0f}%|{bar}| {n:.2f}/{total} [{elapsed}<{remaining}]")
 
 
-def _advance(bar: Any, position: float) -> None:
-    bar.n = position
-    bar.refresh()
+class _Progress:
+    """The pipeline's progress callback, ``(fraction, stage)`` with the fraction weighted by the
+    stages' cost: on a terminal the bar shows the stage running; off a terminal each new stage is
+    one line."""
+
+    def __init__(self, bar: Any, say: _Say, index: int, total: int, name: str) -> None:
+        self.bar, self.say, self.index, self.total, self.name = bar, say, index, total, name
+        self.stage: str | None = None
+
+    def __call__(self, fraction: float, stage: str | None = None) -> None:
+        if self.bar is not None:
+            if stage:
+                self.bar.set_description_str(f"{self.name}: {stage}", refresh=False)
+            self.bar.n = self.index + fraction
+            self.bar.refresh()
+        elif stage and stage != self.stage:
+            self.say(f"{self.name} ({self.index + 1}/{self.total}): {stage} ({100 * fraction:.0f} %)")
+        elif fraction >= 1.0 and self.stage is not None:
+            self.say(f"{self.name} ({self.index + 1}/{self.total}): done")
+        if stage:
+            self.stage = stage

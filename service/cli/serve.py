@@ -45,10 +45,16 @@ def serve(settings, *, camera=None, announce: str | None = None) -> int:
 
     from service.app import create_app
 
+    from service.limits import HEAD_LIMIT_BYTES, http_protocol_class
+
+    # The service says what it does at start (workers warming up, ready) at the log level asked.
+    logging.getLogger("service").setLevel(settings.log_level.upper())
     app = create_app(settings, camera=camera)
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=settings.log_level,
                             # Open event streams must not hold a shutdown for long.
-                            timeout_graceful_shutdown=3)
+                            timeout_graceful_shutdown=3,
+                            # h11, answering a too-long URL with 414 rather than a reset connection.
+                            http=http_protocol_class(), h11_max_incomplete_event_size=2 * HEAD_LIMIT_BYTES)
     server = uvicorn.Server(config)
     if announce:
         print(announce, flush=True)

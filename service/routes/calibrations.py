@@ -15,6 +15,7 @@ from starlette.datastructures import UploadFile
 from analysis.errors import AnalysisError
 from analysis.formats.whites import load_white_images
 from service.deps import ApiKey, State
+from service.models import PROBLEM_RESPONSE, CalibrationList, CalibrationUploaded
 from service.problems import Problem
 
 router = APIRouter(prefix="/api/v1/calibrations", tags=["calibrations"])
@@ -36,13 +37,16 @@ def _copy(source: BinaryIO, target: Path) -> None:
         shutil.copyfileobj(source, out, length=1024 * 1024)
 
 
-@router.get("", summary="Cameras with white images")
+@router.get("", summary="Cameras with white images", response_model=CalibrationList)
 async def list_calibrations(state: State) -> dict:
     return {"items": state.store.calibration_serials()}
 
 
 @router.post("", status_code=201, dependencies=[ApiKey], openapi_extra=_UPLOAD_BODY,
-             summary="Upload a camera's white images (MOD_nnnn.RAW/.TXT or data.C.N)")
+             summary="Upload a camera's white images (MOD_nnnn.RAW/.TXT or data.C.N)",
+             response_model=CalibrationUploaded,
+             responses={400: PROBLEM_RESPONSE, 413: PROBLEM_RESPONSE, 415: PROBLEM_RESPONSE, 422: PROBLEM_RESPONSE,
+                        507: PROBLEM_RESPONSE})
 async def upload_calibration(
         request: Request, state: State,
         serial: Annotated[str | None, Query(max_length=64, pattern=r"^[A-Za-z0-9_-]+$",
@@ -53,6 +57,9 @@ async def upload_calibration(
         raise Problem(415, "Unsupported media type", "send the white images as multipart/form-data, one "
                       "file per part, named as on the camera (MOD_0000.RAW, MOD_0000.TXT, ...)",
                       kind="unsupported-media-type")
+    declared = request.headers.get("content-length", "")
+    await asyncio.to_thread(state.disk.require, int(declared) if declared.isdigit() else 0,
+                            what="these white images")
     # Files go straight to a folder on the data disk: a camera's white images are ~1 GB.
     staging = Path(tempfile.mkdtemp(prefix=".upload-", dir=state.store.calibrations_dir))
     try:
@@ -72,13 +79,16 @@ async def upload_calibration(
         try:
             whites = await asyncio.to_thread(_check_whites, staging)
         except (AnalysisError, OSError) as exc:
-            raise Problem(422, "Not white images", str(exc), kind="not-white-images") from exc
+            # Name the files as the client sent them, never the server's staging folder.
+            detail = str(exc).replace(f"{staging}/", "").replace(str(staging), "the upload")
+            raise Problem(422, "Not white images", detail, kind="not-white-images") from exc
         camera_serial = _one_serial(whites, serial)
         await asyncio.to_thread(state.store.adopt_calibration, camera_serial, staging, source="upload")
     finally:
         await asyncio.to_thread(shutil.rmtree, staging, True)
-    # Jobs that failed for want of white images run now.
-    retried = await asyncio.to_thread(state.queue.retry_failed, "NoWhiteImageError")
+    # Jobs that failed for want of this camera's white images run now, whatever the analysis
+    # called the failure (none found, another camera's, a failed fit).
+    retried = await asyncio.to_thread(state.queue.retry_waiting, "calibration", serial=camera_serial)
     if retried:
         state.runner.wake()
     for job in retried:

@@ -12,6 +12,7 @@ from starlette.datastructures import UploadFile
 
 from service.deps import ApiKey, State
 from service.ingest import NotAnExposure, ingest, parse_exposure
+from service.models import PROBLEM_RESPONSE, Curves, ExposureInfo, ParticleTable, UploadAccepted
 from service.problems import Problem
 from service.queue import QueueFull
 from service.settings import RUN_NAME_PATTERN
@@ -77,10 +78,14 @@ async def _read_upload(request: Request) -> dict[str, bytes]:
 
 
 @router.post("", status_code=202, dependencies=[ApiKey], openapi_extra=_UPLOAD_BODY,
-             summary="Upload one raw exposure and queue it",
-             responses={200: {"description": "this exposure was uploaded before; its job (queued again "
-                                              "with 202 if it had failed)"},
-                        503: {"description": "queue full; retry after Retry-After seconds"}})
+             summary="Upload one raw exposure and queue it", response_model=UploadAccepted,
+             responses={200: {"model": UploadAccepted,
+                              "description": "this exposure was uploaded before; its job (queued again "
+                                             "with 202 if it had failed)"},
+                        400: PROBLEM_RESPONSE, 413: PROBLEM_RESPONSE, 415: PROBLEM_RESPONSE, 422: PROBLEM_RESPONSE,
+                        503: {**PROBLEM_RESPONSE, "description": "queue full; retry after Retry-After seconds"},
+                        507: {**PROBLEM_RESPONSE, "description": "the data disk is full: the problem names the "
+                                                                 "data folder and the space needed"}})
 async def upload_exposure(
         request: Request, state: State,
         run: Annotated[str | None, Query(pattern=RUN_NAME_PATTERN,
@@ -95,6 +100,8 @@ async def upload_exposure(
     except QueueFull:
         state.metrics.inc("plenodust_uploads_total", result="rejected")
         raise
+    declared = request.headers.get("content-length", "")
+    await asyncio.to_thread(state.disk.require, int(declared) if declared.isdigit() else 0, what="this upload")
     # Bodies are read and decoded a few at a time: many uploads at once wait here (in TCP
     # back-pressure) instead of each holding ~100 MB of the server's memory.
     async with state.upload_slots:
@@ -106,7 +113,8 @@ async def upload_exposure(
             raise Problem(422, "Not an exposure", f"{exc}", kind="not-an-exposure") from exc
         try:
             accepted = await asyncio.to_thread(ingest, state.store, state.queue, files, run=run_name,
-                                               source="upload", serial=serial, exposure=exposure)
+                                               source="upload", serial=serial, exposure=exposure,
+                                               guard=state.disk)
         except QueueFull:
             state.metrics.inc("plenodust_uploads_total", result="rejected")
             raise
@@ -143,23 +151,30 @@ def _result_or_409(state: State, exposure_id: str):
     return record
 
 
-@router.get("/{exposure_id}", summary="An exposure and its latest job")
+@router.get("/{exposure_id}", summary="An exposure and its latest job", response_model=ExposureInfo,
+            responses={404: PROBLEM_RESPONSE})
 async def get_exposure(exposure_id: str, state: State) -> dict:
     record = _exposure_or_404(state, exposure_id)
     job = state.queue.for_exposure(exposure_id)
-    slices, provenance = 0, {}
+    slice_alpha, binning, provenance = [], 1, {}
     if state.store.has_result(exposure_id):
-        slices = await asyncio.to_thread(state.store.slice_count, exposure_id)
+        alphas, binning = await asyncio.to_thread(state.store.slice_info, exposure_id)
+        slice_alpha = alphas.tolist()
         provenance = await asyncio.to_thread(state.store.read_provenance, exposure_id)
     return {"id": record.id, "run": record.run, "frame": record.frame, "kind": record.kind,
             "source": record.source, "serial": record.serial, "created_at": record.created_at,
-            "job": job.public() if job else None, "slices": slices,
+            "job": job.public() if job else None, "raw_kept": record.raw_kept, "slices": len(slice_alpha),
+            "slice_alpha": slice_alpha, "slice_binning": binning,
             # What the pipeline wants a user to know (nothing found, saturation, ...) and its timings.
             "warnings": provenance.get("warnings", []), "timings": provenance.get("timings", {})}
 
 
 @router.get("/{exposure_id}/particles", summary="The particle table of one exposure",
-            responses={200: {"content": {"text/csv": {}, "application/x-hdf5": {}}}})
+            response_model=ParticleTable,
+            responses={200: {"content": {"text/csv": {"schema": {"type": "string"}},
+                                         "application/x-hdf5": {"schema": {"type": "string", "format": "binary"}}}},
+                       404: PROBLEM_RESPONSE, 406: PROBLEM_RESPONSE,
+                       409: {**PROBLEM_RESPONSE, "description": "no result yet: the problem names the job"}})
 async def get_particles(exposure_id: str, request: Request, state: State,
                         format: TableFormat | None = None) -> Response:
     fmt = choose_format(request, format)
@@ -170,7 +185,8 @@ async def get_particles(exposure_id: str, request: Request, state: State,
                           filename=f"{record.run}-{record.frame:05d}")
 
 
-@router.get("/{exposure_id}/curves", summary="Brightness curves B(alpha) of the particles")
+@router.get("/{exposure_id}/curves", summary="Brightness curves B(alpha) of the particles", response_model=Curves,
+            responses={404: PROBLEM_RESPONSE, 409: PROBLEM_RESPONSE})
 async def get_curves(exposure_id: str, state: State,
                      particle: Annotated[int | None, Query(ge=0)] = None) -> dict:
     _result_or_409(state, exposure_id)
@@ -190,7 +206,11 @@ async def get_curves(exposure_id: str, state: State,
 
 
 @router.get("/{exposure_id}/slices/{index}", summary="One refocused slice as a PNG",
-            responses={200: {"content": {"image/png": {}}}})
+            response_class=Response,
+            responses={200: {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}},
+                             "description": "an 8-bit image; headers X-Alpha (its alpha) and X-Binning (output-image "
+                                            "pixels per image pixel)"},
+                       404: PROBLEM_RESPONSE, 409: PROBLEM_RESPONSE})
 async def get_slice(exposure_id: str, index: int, state: State) -> Response:
     _result_or_409(state, exposure_id)
     found = await asyncio.to_thread(state.store.read_slice, exposure_id, index)

@@ -7,12 +7,14 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query
 
 from service.deps import State
+from service.models import PROBLEM_RESPONSE, Job, JobPage
 from service.problems import Problem
 
 router = APIRouter(prefix="/api/v1/jobs", tags=["jobs"])
 
 
-@router.get("/{job_id}", summary="One job: state, progress, error")
+@router.get("/{job_id}", summary="One job: state, progress, stage, error", response_model=Job,
+            responses={404: PROBLEM_RESPONSE})
 async def get_job(job_id: str, state: State) -> dict:
     job = state.queue.get(job_id)
     if job is None:
@@ -20,7 +22,7 @@ async def get_job(job_id: str, state: State) -> dict:
     return job.public()
 
 
-@router.get("", summary="Jobs, newest first, one page at a time")
+@router.get("", summary="Jobs, newest first, one page at a time", response_model=JobPage)
 async def list_jobs(state: State,
                     job_state: Annotated[Literal["queued", "running", "done", "failed"] | None,
                                          Query(alias="state")] = None,

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import asyncio
 
-from fastapi import APIRouter, Body, Request
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Body, Query, Request
 from fastapi.responses import FileResponse, Response
 from starlette.background import BackgroundTask
 
 from service.deps import ApiKey, State
+from service.models import PROBLEM_RESPONSE, ParticleTable, RunExposurePage, RunList, RunName
 from service.problems import Problem
 from service.settings import valid_run_name
 from service.tables import TableFormat, choose_format, table_response
@@ -16,17 +19,18 @@ from service.tables import TableFormat, choose_format, table_response
 router = APIRouter(prefix="/api/v1/runs", tags=["runs"])
 
 
-@router.get("", summary="Runs, most recent first")
+@router.get("", summary="Runs, most recent first", response_model=RunList)
 async def list_runs(state: State) -> dict:
     return {"current": state.current_run, "items": await asyncio.to_thread(state.store.runs)}
 
 
-@router.get("/current", summary="The run new camera shots are filed under")
+@router.get("/current", summary="The run new camera shots are filed under", response_model=RunName)
 async def get_current_run(state: State) -> dict:
     return {"name": state.current_run}
 
 
-@router.put("/current", dependencies=[ApiKey], summary="Start filing camera shots under another run")
+@router.put("/current", dependencies=[ApiKey], summary="Start filing camera shots under another run",
+            response_model=RunName, responses={422: PROBLEM_RESPONSE})
 async def set_current_run(state: State, name: str = Body(..., embed=True)) -> dict:
     if not valid_run_name(name):
         raise Problem(422, "Invalid run name", f"{name!r}: use letters, digits, '.', '_' or '-' (at most 64)",
@@ -41,14 +45,28 @@ def _known_run(state: State, run: str) -> None:
         raise Problem(404, "Not found", f"no run {run!r}; GET /api/v1/runs lists them", kind="run-not-found")
 
 
-@router.get("/{run}/exposures", summary="Exposures of a run with their job state")
-async def run_exposures(run: str, state: State) -> dict:
+@router.get("/{run}/exposures", summary="Exposures of a run with their job state, one page at a time",
+            response_model=RunExposurePage, responses={404: PROBLEM_RESPONSE})
+async def run_exposures(run: str, state: State,
+                        limit: Annotated[int, Query(ge=1, le=500)] = 50,
+                        offset: Annotated[int, Query(ge=0)] = 0,
+                        order: Annotated[Literal["asc", "desc"], Query(
+                            description="by frame: asc (first frame first) or desc (newest first)")] = "asc",
+                        ) -> dict:
     _known_run(state, run)
-    return {"run": run, "items": await asyncio.to_thread(state.store.run_exposures, run)}
+    items, total = await asyncio.to_thread(state.store.run_exposures, run, limit=limit, offset=offset,
+                                           newest_first=order == "desc")
+    following = offset + len(items)
+    return {"run": run, "items": items, "total": total, "limit": limit, "offset": offset,
+            "next": f"/api/v1/runs/{run}/exposures?offset={following}&limit={limit}&order={order}"
+            if following < total else None}
 
 
 @router.get("/{run}/particles", summary="All particles of a run, with a frame column",
-            responses={200: {"content": {"text/csv": {}, "application/x-hdf5": {}}}})
+            response_model=ParticleTable,
+            responses={200: {"content": {"text/csv": {"schema": {"type": "string"}},
+                                         "application/x-hdf5": {"schema": {"type": "string", "format": "binary"}}}},
+                       404: PROBLEM_RESPONSE, 406: PROBLEM_RESPONSE, 409: PROBLEM_RESPONSE})
 async def run_particles(run: str, request: Request, state: State, format: TableFormat | None = None) -> Response:
     fmt = choose_format(request, format)
     _known_run(state, run)

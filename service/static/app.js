@@ -1,12 +1,19 @@
-// The dashboard: runs and exposures, kept live by the event stream (/api/v1/events).
+// The dashboard: runs and exposures, kept live by the event stream (/api/v1/events); plots by
+// plotly.js, served by the service itself (/static/vendor/plotly.min.js), so it works offline.
 "use strict";
 
 const API = "/api/v1";
 const $ = id => document.getElementById(id);
-const view = {
-  run: null, exposure: null, table: null, particle: 0, slices: 0,
-  yaw: 0.6, pitch: 0.35, dragging: null, topPoints: [], curves: null,
+const view = { run: null, exposure: null, table: null, info: null, curves: null, particle: 0, slice: 0 };
+// Camera frame (docs/camera-model.md): X right, Y down as in the upright image, Z from the lens.
+// Every panel shows Y down, as the slice images do.
+const DARK = {
+  paper_bgcolor: "#0b0f13", plot_bgcolor: "#0b0f13", font: { color: "#c5d0da", size: 11 },
+  margin: { l: 58, r: 12, t: 8, b: 42 }, uirevision: "keep",
 };
+const AXIS = { gridcolor: "#26313c", zerolinecolor: "#3a4652", linecolor: "#3a4652" };
+const CONFIG = { displaylogo: false, responsive: true, modeBarButtonsToRemove: ["toImage", "select2d", "lasso2d"] };
+const COLOURS = "Viridis";
 
 async function getJSON(url) {
   const r = await fetch(url, { headers: { Accept: "application/json" } });
@@ -16,14 +23,35 @@ async function getJSON(url) {
 
 function status(text) { $("status").textContent = text; }
 
+function message(id, text) {
+  Plotly.purge($(id));
+  $(id).clicks = false;
+  $(id).innerHTML = `<div class="msg">${text}</div>`;
+}
+
+// Draw (or redraw in place, keeping the user's zoom and turn) a plot; `onClick` gets the
+// particle index of a clicked point.
+function plot(id, data, layout, onClick) {
+  const el = $(id);
+  if (!el.data) el.innerHTML = "";  // a message was shown there
+  // The panel's flex layout sets the size; plotly.js would otherwise keep its default 450 px.
+  Plotly.react(el, data, { ...layout, width: el.clientWidth, height: el.clientHeight }, CONFIG);
+  if (onClick && !el.clicks) {
+    el.on("plotly_click", ev => {
+      const p = ev.points.find(q => q.customdata !== undefined);
+      if (p) onClick(p.customdata);
+    });
+    el.clicks = true;
+  }
+}
+
 // -- lists -------------------------------------------------------------------------------
 
 async function loadRuns() {
   const runs = await getJSON(`${API}/runs`);
   $("current-run").textContent = runs.current;
   if (!view.run) view.run = runs.items.length ? runs.items[0].run : runs.current;
-  const ul = $("runs");
-  ul.replaceChildren(...runs.items.map(r => {
+  $("runs").replaceChildren(...runs.items.map(r => {
     const li = document.createElement("li");
     li.dataset.run = r.run;
     li.className = r.run === view.run ? "sel" : "";
@@ -36,9 +64,10 @@ async function loadRuns() {
 async function loadExposures(pickNewest) {
   if (!view.run) return;
   let data;
-  try { data = await getJSON(`${API}/runs/${encodeURIComponent(view.run)}/exposures`); }
+  // Newest first, one page: a long run lists its latest 200 frames.
+  try { data = await getJSON(`${API}/runs/${encodeURIComponent(view.run)}/exposures?order=desc&limit=200`); }
   catch (e) { $("exposures").replaceChildren(); return; }
-  const items = data.items.slice().reverse();
+  const items = data.items;
   $("exposures").replaceChildren(...items.map(e => {
     const li = document.createElement("li");
     li.dataset.exposure = e.id;
@@ -46,7 +75,9 @@ async function loadExposures(pickNewest) {
     const state = e.state || "queued";
     const detail = state === "done" ? `${e.particles} particles`
       : state === "running" ? `${Math.round((e.progress || 0) * 100)} %` : state;
-    li.innerHTML = `<span>frame ${e.frame}</span><span class="state-${state}" title="${e.error || ""}">${detail}</span>`;
+    li.innerHTML = `<span>frame ${e.frame}</span><span class="state-${state}"></span>`;
+    li.lastChild.textContent = detail;
+    li.lastChild.title = e.error || "";
     li.onclick = () => { if (state === "done") { $("follow").checked = false; selectExposure(e.id); } };
     return li;
   }));
@@ -64,8 +95,15 @@ async function loadHeader() {
   } catch (e) { $("camera").textContent = "?"; }
   try {
     const [q, r] = await Promise.all([getJSON(`${API}/jobs?state=queued&limit=1`), getJSON(`${API}/jobs?state=running&limit=1`)]);
-    $("queue").textContent = `${q.total} queued · ${r.total} running`;
+    const stage = r.items.length && r.items[0].stage ? ` (${r.items[0].stage})` : "";
+    $("queue").textContent = `${q.total} queued · ${r.total} running${stage}`;
   } catch (e) { /* shown next time */ }
+  try {
+    const ready = await fetch("/readyz").then(x => x.json());
+    $("workers").textContent = ready.workers === "warm"
+      ? (ready.disk && !ready.disk.ok ? "warm · data disk full" : "warm")
+      : "warming up: loading the compiled analysis kernels";
+  } catch (e) { $("workers").textContent = "?"; }
 }
 
 // -- one exposure ------------------------------------------------------------------------
@@ -74,109 +112,197 @@ async function selectExposure(id) {
   view.exposure = id;
   document.querySelectorAll("#exposures li").forEach(li => li.classList.toggle("sel", li.dataset.exposure === id));
   const [table, info] = await Promise.all([getJSON(`${API}/exposures/${id}/particles`), getJSON(`${API}/exposures/${id}`)]);
-  view.table = table;
-  view.curves = null;
-  try { view.curves = await getJSON(`${API}/exposures/${id}/curves`); } catch (e) { view.curves = null; }
+  let curves = null;
+  try { curves = await getJSON(`${API}/exposures/${id}/curves`); } catch (e) { curves = null; }
+  Object.assign(view, { table, info, curves });
   const n = table.count;
   view.particle = Math.min(view.particle, Math.max(0, n - 1));
   $("particle").replaceChildren(...Array.from({ length: n }, (_, i) => new Option(String(i), String(i))));
   $("particle").value = String(view.particle);
-  view.slices = info.slices || 0;
-  $("slice").max = String(Math.max(0, view.slices - 1));
-  if (+$("slice").value >= view.slices) $("slice").value = String(Math.floor(view.slices / 2));
-  status(`run ${table.run} · frame ${table.frame} · ${n} particles · exposure ${id.slice(0, 12)}`);
+  $("slice").max = String(Math.max(0, info.slices - 1));
+  status(`run ${table.run} · frame ${table.frame} · ${n} particles · exposure ${id.slice(0, 12)}`
+    + (info.warnings.length ? ` · ${info.warnings.join("; ")}` : ""));
   drawAll();
-  drawSlice();
+  pickParticle(view.particle, { jump: true });
+}
+
+function columns() {
+  const c = view.table.columns;
+  // Without a depth model X, Y, Z are null: fall back to pixels and alpha.
+  return c.X.some(v => v !== null) ? { x: c.X, y: c.Y, z: c.Z, unit: "mm", zname: "Z" }
+    : { x: c.x, y: c.y, z: c.alpha, unit: "px", zname: "α" };
+}
+
+// Whether a particle's own pixels leave its depth open: its fitted alpha spreads over half a
+// slice step or more (light in one micro-lens looks the same over a range of depths).
+function depthOpen(i) {
+  const s = view.table.columns.alpha_std[i], a = view.curves ? view.curves.alpha : null;
+  const step = a && a.length > 1 ? (a[a.length - 1] - a[0]) / (a.length - 1) : Infinity;
+  return s !== null && s >= 0.5 * step;
 }
 
 function drawAll() {
   const t = view.table;
   if (!t || !t.count) {
-    ["scatter", "top", "curve"].forEach(c => Plot.message($(c), t ? "no particles in this exposure" : "waiting for a result"));
+    ["scatter", "top", "curve"].forEach(id => message(id, t ? "no particles in this exposure" : "waiting for a result"));
     return;
   }
-  const c = t.columns;
-  const finiteXYZ = c.X.some(Number.isFinite);
-  // Without a depth model X, Y, Z are NaN: fall back to pixels and alpha.
-  const [xs, ys, zs, unit] = finiteXYZ ? [c.X, c.Y, c.Z, "mm"] : [c.x, c.y, c.alpha, "px / alpha"];
-  Plot.scatter3d($("scatter"), xs, ys, zs, { yaw: view.yaw, pitch: view.pitch, selected: view.particle });
-  view.topPoints = Plot.scatter2d($("top"), xs, ys, zs, {
-    selected: view.particle, xlabel: `X (${unit})`, ylabel: `Y (${unit})`,
-    xfmt: v => v.toFixed(1), yfmt: v => v.toFixed(1),
-  });
-  drawCurve();
+  const { x, y, z, unit, zname } = columns();
+  const ids = x.map((_, i) => i);
+  const open = ids.map(depthOpen);
+  const hover = `particle %{customdata}<br>X %{x:.3f} ${unit}<br>Y %{y:.3f} ${unit}<br>${zname} %{marker.color:.3f} ${unit}<extra></extra>`;
+  const colourbar = { title: { text: `${zname} (${unit})`, side: "right" }, thickness: 10, len: 0.9, outlinewidth: 0 };
+  plot("scatter", [{
+    type: "scatter3d", mode: "markers", x, y, z, customdata: ids,
+    marker: { size: 3.5, color: z, colorscale: COLOURS, colorbar: colourbar, opacity: 0.95 },
+    hovertemplate: hover.replace("%{marker.color:.3f}", "%{z:.3f}"),
+  }, selectedTrace3d(x, y, z)], {
+    ...DARK, margin: { l: 0, r: 0, t: 0, b: 0 },
+    scene: {
+      aspectmode: "data", dragmode: "turntable",
+      xaxis: { ...AXIS, title: { text: `X (${unit})` }, nticks: 5, backgroundcolor: "#0b0f13", showbackground: true },
+      yaxis: { ...AXIS, title: { text: `Y (${unit})` }, nticks: 5, autorange: "reversed", backgroundcolor: "#0b0f13", showbackground: true },
+      zaxis: { ...AXIS, title: { text: `${zname} (${unit})` }, nticks: 5, backgroundcolor: "#0b0f13", showbackground: true },
+      // Seen from behind the camera and a little above and to the right: X right, Y down, Z away.
+      camera: { up: { x: 0, y: -1, z: 0 }, eye: { x: 1.5, y: -0.9, z: -1.1 }, projection: { type: "orthographic" } },
+    },
+  }, i => pickParticle(i, { jump: true }));
+  plot("top", [{
+    type: "scatter", mode: "markers", x, y, customdata: ids,
+    marker: { size: 8, color: z, colorscale: COLOURS, colorbar: colourbar,
+              symbol: open.map(o => o ? "circle-open" : "circle"), line: { width: 1.5 } },
+    text: z.map((v, i) => `${zname} ${v === null ? "–" : v.toFixed(3)} ${unit}${open[i] ? "<br>depth left open by its pixels" : ""}`),
+    hovertemplate: `particle %{customdata}<br>X %{x:.3f} ${unit}<br>Y %{y:.3f} ${unit}<br>%{text}<extra></extra>`,
+  }, selectedTrace2d(x, y)], {
+    ...DARK, showlegend: false, hovermode: "closest",
+    xaxis: { ...AXIS, title: { text: `X (${unit}) →` }, constrain: "domain" },
+    yaxis: { ...AXIS, title: { text: `Y (${unit}), down ↓` }, autorange: "reversed", scaleanchor: "x", scaleratio: 1 },
+  }, i => pickParticle(i, { jump: true }));
+}
+
+function selectedTrace3d(x, y, z) {
+  const i = view.particle;
+  return { type: "scatter3d", mode: "markers", x: [x[i]], y: [y[i]], z: [z[i]], hoverinfo: "skip", showlegend: false,
+           marker: { size: 9, color: "rgba(0,0,0,0)", line: { color: "#ffffff", width: 3 } } };
+}
+
+function selectedTrace2d(x, y) {
+  const i = view.particle;
+  return { type: "scatter", mode: "markers", x: [x[i]], y: [y[i]], hoverinfo: "skip",
+           marker: { size: 16, color: "rgba(0,0,0,0)", line: { color: "#ffffff", width: 2 } } };
+}
+
+// The peak of a sampled curve: the highest sample refined by a parabola through it and its neighbours.
+function curvePeak(xs, ys) {
+  let k = -1;
+  ys.forEach((v, j) => { if (v !== null && (k < 0 || v > ys[k])) k = j; });
+  if (k <= 0 || k >= ys.length - 1 || ys[k - 1] === null || ys[k + 1] === null) return k < 0 ? NaN : xs[k];
+  const d = ys[k - 1] - 2 * ys[k] + ys[k + 1];
+  const shift = d < 0 ? 0.5 * (ys[k - 1] - ys[k + 1]) / d : 0;
+  return xs[k] + shift * (xs[k + 1] - xs[k]);
 }
 
 function drawCurve() {
   const t = view.table, i = view.particle;
   if (!t || !t.count) return;
-  const c = t.columns;
-  $("particle-info").textContent =
-    `x ${c.x[i].toFixed(1)} px, y ${c.y[i].toFixed(1)} px, α ${c.alpha[i].toFixed(5)}` +
-    (Number.isFinite(c.Z[i]) ? ` → X ${c.X[i].toFixed(3)}, Y ${c.Y[i].toFixed(3)}, Z ${c.Z[i].toFixed(3)} mm` : "");
-  if (!view.curves) { Plot.message($("curve"), "no curves kept for this exposure"); return; }
-  Plot.curve($("curve"), view.curves.alpha, view.curves.brightness[i].map(v => v === null ? NaN : v), {
-    mark: c.alpha[i], xlabel: "α", ylabel: "B", xfmt: v => v.toFixed(3), yfmt: v => v.toExponential(0),
-  });
-}
-
-async function drawSlice() {
-  const canvas = $("slice-view"), k = +$("slice").value;
-  if (!view.exposure || !view.slices) { Plot.message(canvas, "no slices kept"); $("slice-alpha").textContent = ""; return; }
-  const r = await fetch(`${API}/exposures/${view.exposure}/slices/${k}`);
-  if (!r.ok) { Plot.message(canvas, "slice not available"); return; }
-  const alpha = +r.headers.get("X-Alpha"), binning = +(r.headers.get("X-Binning") || 1);
-  $("slice-alpha").textContent = `α = ${alpha.toFixed(5)} (${k + 1} of ${view.slices})`;
-  const bitmap = await createImageBitmap(await r.blob());
-  const ctx = canvas.getContext("2d");
-  ctx.imageSmoothingEnabled = false;
-  ctx.clearRect(0, 0, canvas.width, canvas.height);
-  const s = Math.min(canvas.width / bitmap.width, canvas.height / bitmap.height);
-  ctx.drawImage(bitmap, 0, 0, bitmap.width * s, bitmap.height * s);
-  drawSliceMarkers(ctx, alpha, binning, s);
-}
-
-// Rings on the particles: bright where this slice is their focus, faint elsewhere.
-function drawSliceMarkers(ctx, alpha, binning, scale) {
-  const t = view.table;
-  if (!t || !t.count || !view.curves) return;
-  const a = view.curves.alpha;
-  const spacing = a.length > 1 ? (a[a.length - 1] - a[0]) / (a.length - 1) * Math.ceil(a.length / view.slices) : 1;
-  const c = t.columns;
-  for (let i = 0; i < t.count; i++) {
-    // x, y are output-image pixels (integers at pixel centres); a slice pixel spans `binning`.
-    const X = ((c.x[i] - (binning - 1) / 2) / binning + 0.5) * scale;
-    const Y = ((c.y[i] - (binning - 1) / 2) / binning + 0.5) * scale;
-    const inFocus = Math.abs(c.alpha[i] - alpha) <= spacing / 2;
-    ctx.beginPath(); ctx.arc(X, Y, inFocus ? 7 : 5, 0, 2 * Math.PI);
-    ctx.strokeStyle = i === view.particle ? "#ffffff" : inFocus ? "#ffd54f" : "rgba(79,195,247,0.35)";
-    ctx.lineWidth = inFocus || i === view.particle ? 2 : 1;
-    ctx.stroke();
+  const c = t.columns, alpha = c.alpha[i], spread = c.alpha_std[i];
+  if (!view.curves) { message("curve", "no curves kept for this exposure"); return; }
+  const xs = view.curves.alpha, ys = view.curves.brightness[i];
+  const peak = curvePeak(xs, ys), step = (xs[xs.length - 1] - xs[0]) / Math.max(1, xs.length - 1);
+  const open = depthOpen(i);
+  const shapes = [];
+  const top = Math.max(...ys.filter(v => v !== null), 0) * 1.05;
+  if (spread !== null && Number.isFinite(spread)) {
+    shapes.push({ type: "rect", xref: "x", yref: "paper", x0: alpha - spread, x1: alpha + spread, y0: 0, y1: 1,
+                  fillcolor: open ? "rgba(255,183,77,0.18)" : "rgba(255,213,79,0.10)", line: { width: 0 } });
   }
+  plot("curve", [
+    { type: "scatter", mode: "lines+markers", x: xs, y: ys, name: "B(α)", line: { color: "#4fc3f7", width: 2 },
+      marker: { size: 4 }, hovertemplate: "α %{x:.5f}<br>B %{y:.4s} DN²<extra></extra>" },
+    { type: "scatter", mode: "lines", x: [alpha, alpha], y: [0, top], name: `fitted α ${alpha.toFixed(5)} (the table's)`,
+      line: { color: "#ffd54f", width: 2 }, hoverinfo: "skip" },
+    { type: "scatter", mode: "lines", x: [peak, peak], y: [0, top], name: `curve peak ${Number.isFinite(peak) ? peak.toFixed(5) : "–"}`,
+      line: { color: "#80deea", width: 1.5, dash: "dash" }, hoverinfo: "skip" },
+  ], {
+    ...DARK, margin: { l: 62, r: 12, t: 8, b: 40 }, showlegend: true,
+    legend: { x: 0.01, y: 0.99, xanchor: "left", yanchor: "top", bgcolor: "rgba(11,15,19,0.75)", font: { size: 10 } },
+    xaxis: { ...AXIS, title: { text: "refocus parameter α" }, tickformat: ".3f",
+             range: [Math.min(xs[0], alpha) - step, Math.max(xs[xs.length - 1], alpha) + step] },
+    yaxis: { ...AXIS, title: { text: "B(α), DN² per pixel" }, tickformat: "~s", range: [0, top * 1.12] },
+    shapes,
+  });
+  const where = Number.isFinite(c.Z[i]) ? ` → X ${c.X[i].toFixed(3)}, Y ${c.Y[i].toFixed(3)}, Z ${c.Z[i].toFixed(3)} mm` : "";
+  const slices = Number.isFinite(peak) ? ((alpha - peak) / step).toFixed(1) : "?";
+  $("particle-info").innerHTML = `x ${c.x[i].toFixed(1)} px, y ${c.y[i].toFixed(1)} px, fitted α ${alpha.toFixed(5)}${where}. `
+    + `The table holds the fitted α, from the forward-model fit to the raw pixels (how the light splits between `
+    + `micro-lenses); the curve's peak (α ${Number.isFinite(peak) ? peak.toFixed(5) : "–"}) is the refocused stack's `
+    + `first estimate, ${slices} slice steps away.`
+    + (open ? ` <span class="flag">Depth left open by its pixels: α ± ${spread.toFixed(5)} (its light falls in one `
+      + `micro-lens); where neighbours lie on one surface it takes theirs.</span>` : "")
+    + (alpha < xs[0] || alpha > xs[xs.length - 1] ? ` <span class="flag">The fitted α lies outside the refocused range.</span>` : "");
+}
+
+function nearestSlice(alpha) {
+  const a = view.info ? view.info.slice_alpha : [];
+  let best = 0;
+  a.forEach((v, k) => { if (Math.abs(v - alpha) < Math.abs(a[best] - alpha)) best = k; });
+  return best;
+}
+
+function pickParticle(i, { jump } = {}) {
+  if (!view.table || !view.table.count) { drawAll(); drawSlice(); return; }
+  view.particle = i;
+  $("particle").value = String(i);
+  const { x, y, z } = columns();
+  // Move the white ring (trace 1) of the 3D and top views onto the particle.
+  if ($("scatter").data) Plotly.restyle($("scatter"), { x: [[x[i]]], y: [[y[i]]], z: [[z[i]]] }, [1]);
+  if ($("top").data) Plotly.restyle($("top"), { x: [[x[i]]], y: [[y[i]]] }, [1]);
+  drawCurve();
+  if (jump && view.info && view.info.slices) $("slice").value = String(nearestSlice(view.table.columns.alpha[i]));
+  drawSlice();
+}
+
+function drawSlice() {
+  const info = view.info, t = view.table;
+  if (!view.exposure || !info || !info.slices) { message("slice-view", "no slices kept"); $("slice-alpha").textContent = ""; return; }
+  const k = +$("slice").value, alpha = info.slice_alpha[k], b = info.slice_binning;
+  const step = info.slices > 1 ? (info.slice_alpha[info.slices - 1] - info.slice_alpha[0]) / (info.slices - 1) : 1;
+  $("slice-alpha").textContent = `α = ${alpha.toFixed(5)} (${k + 1} of ${info.slices}) · output-image pixels, y down · `
+    + `yellow: particles in focus here, white: particle ${view.particle}`;
+  const c = t && t.count ? t.columns : { x: [], y: [], alpha: [] };
+  const ids = c.x.map((_, i) => i);
+  const focus = ids.filter(i => Math.abs(c.alpha[i] - alpha) <= step / 2);
+  const others = ids.filter(i => Math.abs(c.alpha[i] - alpha) > step / 2);
+  const ring = (sel, colour, size) => ({
+    type: "scatter", mode: "markers", x: sel.map(i => c.x[i]), y: sel.map(i => c.y[i]), customdata: sel,
+    marker: { size, color: "rgba(0,0,0,0)", line: { color: colour, width: 1.5 } },
+    hovertemplate: "particle %{customdata}<br>x %{x:.1f} px, y %{y:.1f} px<extra></extra>",
+  });
+  const n = view.particle;
+  // The PNG's pixel (i, j) covers output-image pixels [b*j, b*(j+1)) across: place it so.
+  const img = new Image();
+  img.onload = () => {
+    const w = img.width * b, h = img.height * b;
+    plot("slice-view", [ring(others, "rgba(79,195,247,0.35)", 9), ring(focus, "#ffd54f", 12),
+      { ...ring(t && t.count ? [n] : [], "#ffffff", 16), marker: { size: 16, color: "rgba(0,0,0,0)", line: { color: "#fff", width: 2.5 } } }], {
+      ...DARK, showlegend: false, hovermode: "closest", margin: { l: 46, r: 8, t: 6, b: 34 },
+      xaxis: { ...AXIS, range: [-0.5, w - 0.5], title: { text: "x (px) →" }, constrain: "domain", showgrid: false },
+      yaxis: { ...AXIS, range: [h - 0.5, -0.5], title: { text: "y (px), down ↓" }, scaleanchor: "x", showgrid: false },
+      images: [{ source: img.src, xref: "x", yref: "y", x: -0.5, y: -0.5, sizex: w, sizey: h, sizing: "stretch",
+                 xanchor: "left", yanchor: "top", layer: "below" }],
+    }, i => pickParticle(i, { jump: false }));
+  };
+  img.src = `${API}/exposures/${view.exposure}/slices/${k}`;
 }
 
 // -- interaction -------------------------------------------------------------------------
 
-$("scatter").addEventListener("pointerdown", e => { view.dragging = [e.clientX, e.clientY]; });
-window.addEventListener("pointerup", () => { view.dragging = null; });
-window.addEventListener("pointermove", e => {
-  if (!view.dragging) return;
-  view.yaw += (e.clientX - view.dragging[0]) * 0.01;
-  view.pitch = Math.max(-1.5, Math.min(1.5, view.pitch + (e.clientY - view.dragging[1]) * 0.01));
-  view.dragging = [e.clientX, e.clientY];
-  drawAll();
-});
-$("top").addEventListener("click", e => {
-  const rect = e.target.getBoundingClientRect();
-  const x = (e.clientX - rect.left) * e.target.width / rect.width, y = (e.clientY - rect.top) * e.target.height / rect.height;
-  let best = null, dist = 12 * 12;
-  for (const [px, py, i] of view.topPoints) {
-    const d = (px - x) ** 2 + (py - y) ** 2;
-    if (d < dist) { dist = d; best = i; }
-  }
-  if (best !== null) { view.particle = best; $("particle").value = String(best); drawAll(); drawSlice(); }
-});
-$("particle").addEventListener("change", e => { view.particle = +e.target.value; drawAll(); drawSlice(); });
+$("particle").addEventListener("change", e => pickParticle(+e.target.value, { jump: true }));
+// A window or panel that changes size redraws its plot to fit.
+const resized = new ResizeObserver(entries => entries.forEach(({ target }) => {
+  if (target.data) Plotly.relayout(target, { width: target.clientWidth, height: target.clientHeight });
+}));
+document.querySelectorAll(".plot").forEach(el => resized.observe(el));
 $("slice").addEventListener("input", drawSlice);
 
 // -- live updates --------------------------------------------------------------------------
@@ -210,9 +336,9 @@ function connect() {
 }
 
 (async () => {
-  ["scatter", "top", "curve", "slice-view"].forEach(c => Plot.message($(c), "waiting for a result"));
+  ["scatter", "top", "curve", "slice-view"].forEach(id => message(id, "waiting for a result"));
   try { await loadRuns(); await loadExposures(true); await loadHeader(); } catch (e) { status(String(e)); }
   connect();
-  // Battery and queue depth change without events; a slow poll keeps them fresh.
-  setInterval(loadHeader, 10000);
+  // Battery, queue depth and the workers' warm-up change without events; a slow poll keeps them fresh.
+  setInterval(loadHeader, 3000);
 })();
