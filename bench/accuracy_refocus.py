@@ -24,8 +24,8 @@ import numpy as np  # noqa: E402
 
 from analysis.camera.model import CameraModel  # noqa: E402
 from analysis.lightfield.table import build_table_from_model  # noqa: E402
-from analysis.lightfield.refocus import (default_alphas, products, refocus_stack, select_samples,
-    subaperture_image)  # noqa: E402
+from analysis.lightfield.refocus import default_alphas, products, refocus_stack, subaperture_image
+from analysis.lightfield.samples import select_samples  # noqa: E402
 from analysis.simulation.scenarios import Particles  # noqa: E402
 from analysis.simulation.camera import simulated_camera_metadata  # noqa: E402
 from analysis.simulation.render import particle_truth, render_exposure, render_white_image  # noqa: E402

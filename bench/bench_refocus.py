@@ -93,7 +93,8 @@ def worker(folder: Path, repeats: int, naive: bool) -> None:
     """A fresh process: load the cached table, refocus, time it, report memory."""
     import numba
 
-    from analysis.lightfield.table import refocus as rf
+    from analysis.lightfield import refocus as rf
+    from analysis.lightfield.samples import select_samples
     from analysis.lightfield.table import load_table
 
     base = _rss_mb()
@@ -102,7 +103,7 @@ def worker(folder: Path, repeats: int, naive: bool) -> None:
     alphas = rf.default_alphas()
     # Warm-up: numba loads its cached kernels.
     t0 = time.perf_counter()
-    samples = rf.select_samples(raw, table)
+    samples = select_samples(raw, table)
     stack = rf.refocus_stack(raw, table, alphas, samples=samples)
     sub = rf.subaperture_image(raw, table, samples=samples)
     prod = rf.products(stack, sub)
@@ -111,7 +112,7 @@ def worker(folder: Path, repeats: int, naive: bool) -> None:
     print(f"table load:          {t_load * 1e3:8.1f} ms")
     print(f"first call (kernels from numba cache): {t_first * 1e3:.0f} ms")
 
-    t_sel, samples = _timed(lambda: rf.select_samples(raw, table), repeats)
+    t_sel, samples = _timed(lambda: select_samples(raw, table), repeats)
     t_stack, _ = _timed(lambda: rf.refocus_stack(raw, table, alphas, samples=samples, out=stack), repeats)
     t_sub, sub = _timed(lambda: rf.subaperture_image(raw, table, samples=samples), repeats)
     t_prod, _ = _timed(lambda: rf.products(stack, sub, out=prod), repeats)
@@ -126,7 +127,7 @@ def worker(folder: Path, repeats: int, naive: bool) -> None:
     print(f"total (table cached):{total * 1e3:8.1f} ms  (budget for this share: 500 ms)")
 
     def chain():
-        s = rf.select_samples(raw, table)
+        s = select_samples(raw, table)
         rf.refocus_stack(raw, table, alphas, samples=s, out=stack)
         rf.products(stack, rf.subaperture_image(raw, table, samples=s), out=prod)
 

@@ -19,7 +19,7 @@ from analysis.depth.rayfit_kernels import GridPass, grid_costs
 from analysis.depth.render_kernels import lit_fraction
 from analysis.depth.refine import COARSE_TEMPERATURE
 from analysis.depth.table_index import TableIndex
-from analysis.lightfield.refocus import select_samples
+from analysis.lightfield.samples import select_samples
 from analysis.simulation.scenarios import Particles
 from analysis.simulation.camera import simulated_camera_metadata
 from analysis.simulation.render import render_exposure, white_coverage, write_scenario

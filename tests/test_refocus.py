@@ -12,9 +12,9 @@ from analysis.camera.model import CameraModel
 from analysis.errors import ParameterError
 from analysis.lightfield.table import build_table_from_model, load_table, save_table
 from analysis.cache import Cache
-from analysis.lightfield.refocus import (_gaussian_blur, alphas_for_depth_range,
-    default_alphas, normalisation, prepare_normalisations, products, refocus_stack, select_samples,
-    subaperture_image)
+from analysis.lightfield.refocus import (_gaussian_blur, alphas_for_depth_range, default_alphas,
+    normalisation, prepare_normalisations, products, refocus_stack, subaperture_image)
+from analysis.lightfield.samples import select_samples
 from analysis.simulation.scenarios import Particles
 from analysis.simulation.camera import simulated_camera_metadata
 from analysis.simulation.render import particle_truth, render_exposure, render_white_image

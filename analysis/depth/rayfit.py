@@ -30,8 +30,8 @@ from scipy.special import ndtr
 from analysis.cache import Cache
 from analysis.lightfield.table import LightFieldTable
 
-from . import rayfit_kernels as kern
-from . import render_kernels
+from analysis.depth import rayfit_kernels as kern
+from analysis.depth import render_kernels
 from .table_index import Gathered, TableIndex, table_index
 
 

@@ -59,7 +59,8 @@ from analysis.detection.rejections import Rejections
 from analysis.errors import CameraMismatchError, MetadataError
 from analysis.formats.exposure import Exposure, read_exposure
 from analysis.lightfield.background import BackgroundMap, estimate_background
-from analysis.lightfield.refocus import default_alphas, products, refocus_stack, select_samples, subaperture_image
+from analysis.lightfield.refocus import default_alphas, products, refocus_stack, subaperture_image
+from analysis.lightfield.samples import select_samples
 from analysis.lightfield.table import LightFieldTable
 
 from .candidates import locate, product_threshold

@@ -1,0 +1,158 @@
+"""Which raw samples an exposure's refocus uses: the table's samples above the background and the noise.
+
+Samples (table entries) are read from the raw image, minus the black level and the background
+(glow and other extended light, ``level * weight`` per sample: it lights the sensor like the
+white image). Unless ``noise_sigmas=None``, only samples above ``noise_sigmas`` robust standard
+deviations contribute: dust frames are sparse, so this skips almost all the work, and the
+skipped samples are pure noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from analysis.errors import ParameterError
+
+from . import kernels as kern
+from .background import BackgroundMap
+from .table import LightFieldTable
+
+# Below this many DN the noise estimate is taken as quantisation-limited.
+_MIN_SIGMA_DN = 0.5
+# Histogram for the robust background and noise: 1/8 DN bins over -512 ... 4096 DN.
+_HIST_BIN_DN = 0.125
+_HIST_LO = -512.0
+_HIST_BINS = int(4608 / _HIST_BIN_DN)
+
+
+@dataclass(frozen=True)
+class Samples:
+    """Samples of one raw image chosen for the splat (reuse it for the stack and sub-aperture).
+
+    Attributes
+    ----------
+    ids : ndarray (M,), int32
+        Indices into the table's samples.
+    values : ndarray (M,), float32
+        ``raw - black_level - background * weight`` of those samples.
+    background : float
+        Diffuse background (plasma glow) in DN of a median-weight pixel: the median of ``levels``.
+    levels : ndarray (table.n_lenses,), float64
+        The background behind each lens, subtracted from each of its samples in proportion to
+        the sample's weight, as extended light lights a micro-image like the white image does.
+    sigma : float
+        Robust noise of the background-subtracted samples (1.4826 * MAD), DN.
+    threshold : float
+        Samples with a value ``<= threshold`` were skipped (``-inf``: none).
+    """
+
+    ids: np.ndarray
+    values: np.ndarray
+    background: float
+    sigma: float
+    threshold: float
+    levels: np.ndarray
+
+
+def check_image(image: np.ndarray, table: LightFieldTable) -> np.ndarray:
+    image = np.asarray(image)
+    if image.shape != (table.height, table.width):
+        raise ParameterError(f"raw image is {image.shape}, the look-up table was built for "
+                             f"{(table.height, table.width)}; use the calibration of this camera")
+    if image.dtype != np.uint16:
+        if not np.issubdtype(image.dtype, np.integer) or (image.size and (image.min() < 0 or image.max() > 65535)):
+            raise ParameterError(f"raw image must hold raw counts 0 ... 65535 (uint16), got {image.dtype}; "
+                                 "pass the exposure's raw image, not a processed one")
+        image = image.astype(np.uint16)
+    return np.ascontiguousarray(image).reshape(-1)
+
+
+def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: float | None = None,
+                   background: float | BackgroundMap | None = None, noise_sigmas: float | None = 3.0) -> Samples:
+    """Read the table's samples from a raw image, subtract the background, keep those above the noise.
+
+    Parameters
+    ----------
+    image : ndarray of shape (H, W), uint16
+        Raw sensor counts.
+    table : LightFieldTable
+    black_level : float, optional
+        Raw black level; default ``table.black_level``.
+    background : float or BackgroundMap, optional
+        Extended light in DN of a median-weight pixel, subtracted as ``level * weight`` from each
+        sample: one level (a diffuse glow), or a level per lens
+        (:func:`analysis.lightfield.background.estimate_background`); default: the median of
+        ``(raw - black) / weight`` over all samples (robust: particles light a small fraction of
+        them). Pass ``0.0`` to keep everything.
+    noise_sigmas : float or None
+        Keep samples more than this many robust standard deviations above the background;
+        ``None`` keeps every sample (dense, slower, same normalisation).
+
+    Returns
+    -------
+    Samples
+
+    Raises
+    ------
+    ParameterError
+        If the image does not match the table, or ``noise_sigmas`` is negative.
+    """
+    flat = check_image(image, table)
+    black = table.black_level if black_level is None else float(black_level)
+    stride = _stride(table)
+    values, weights = kern.gather_subsample(flat, table.pixel_index, table.weight, float(black), stride)
+    if background is None:
+        hist = np.zeros(_HIST_BINS, dtype=np.int64)
+        kern.value_histogram(values, weights, np.zeros(values.size), True, _HIST_LO, 1.0 / _HIST_BIN_DN, hist)
+        background = _median_and_sigma(hist, _HIST_LO, _HIST_BIN_DN)[0]
+    levels = (background.per_lens(table) if isinstance(background, BackgroundMap)
+              else np.full(table.n_lenses, float(background)))
+    if noise_sigmas is None:
+        threshold = -np.inf
+        sigma = float("nan")
+    else:
+        if noise_sigmas < 0:
+            raise ParameterError(f"noise_sigmas must be >= 0 or None, got {noise_sigmas}")
+        hist = np.zeros(_HIST_BINS, dtype=np.int64)
+        kern.value_histogram(values, weights, levels[table.lens[::stride][:values.size]], False, _HIST_LO,
+                             1.0 / _HIST_BIN_DN, hist)
+        centre, sigma = _median_and_sigma(hist, _HIST_LO, _HIST_BIN_DN)
+        threshold = centre + float(noise_sigmas) * max(sigma, _MIN_SIGMA_DN)
+    ids, values = kern.select_samples(flat, table.pixel_index, table.weight, table.lens, float(black), levels,
+                                      float(threshold), numba.get_num_threads())
+    return Samples(ids=ids, values=values, background=float(np.median(levels)), sigma=float(sigma),
+                   threshold=float(threshold), levels=levels)
+
+
+def _stride(table: LightFieldTable) -> int:
+    """Every how many samples the background statistics look at: about 200 000 are plenty."""
+    return max(1, table.n_samples // 200_000)
+
+
+def _median_and_sigma(hist: np.ndarray, lo: float, width: float) -> tuple[float, float]:
+    """Median and 1.4826 * MAD of values given by their histogram (bin ``k`` centred on
+    ``lo + k * width``), values taken as spread evenly within their bin."""
+    total = float(hist.sum())
+    if total == 0:
+        return 0.0, 0.0
+    nonzero = np.flatnonzero(hist)
+    first, last = int(nonzero[0]), int(nonzero[-1])
+    counts = hist[first:last + 1].astype(np.float64)
+    edges = lo + (np.arange(first, last + 2, dtype=np.float64) - 0.5) * width
+    cdf = np.concatenate([[0.0], np.cumsum(counts)]) / total
+    k = int(np.searchsorted(cdf, 0.5, side="left"))      # cdf[k-1] < 0.5 <= cdf[k]
+    k = min(max(k, 1), cdf.size - 1)
+    median = edges[k - 1] + (0.5 - cdf[k - 1]) / max(cdf[k] - cdf[k - 1], 1e-300) * width
+    # MAD: the half-width d with half the values in [median - d, median + d] (bisection).
+    d_lo, d_hi = 0.0, float(edges[-1] - edges[0])
+    for _ in range(50):
+        d = 0.5 * (d_lo + d_hi)
+        inside = np.interp(median + d, edges, cdf) - np.interp(median - d, edges, cdf)
+        if inside < 0.5:
+            d_lo = d
+        else:
+            d_hi = d
+    return float(median), 1.4826 * 0.5 * (d_lo + d_hi)
