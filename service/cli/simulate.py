@@ -10,7 +10,7 @@ from pathlib import Path
 from analysis.errors import AnalysisError
 from analysis.simulation.scenarios import SCENARIO_NAMES
 from analysis.simulation.camera import F01_SIZE
-from analysis.simulation.render import write_scenario
+from analysis.simulation.scenario_files import write_scenario
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
