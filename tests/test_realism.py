@@ -148,6 +148,11 @@ def test_blur_widens_a_points_micro_image_by_the_expected_variance():
     # A Gaussian adds its variance per axis (cv2's sampled kernel: about 0.21 px^2 at 0.5 px, 1.44 at 1.2).
     for axis in (0, 1):
         assert variances[1.2][axis] - variances[0.5][axis] == pytest.approx(1.44 - 0.21, abs=0.06)
+    # The white images carry the same point spread: Gaussians compose.
+    sharp = camera_coverage(model, camera(blur_px=0.3))
+    wide = camera_coverage(model, camera(blur_px=1.2))
+    composed = cv2.GaussianBlur(sharp, (0, 0), math.sqrt(1.2 ** 2 - 0.3 ** 2), borderType=cv2.BORDER_REFLECT_101)
+    assert np.abs(wide - composed).max() < 0.02 * wide.max() < np.abs(wide - sharp).max()
 
 
 def test_second_stop_makes_corner_micro_images_cats_eyes_of_the_predicted_area():
@@ -380,3 +385,20 @@ def test_cli_realism_options(tmp_path, capsys):
     assert cli_main(["simulate", "--out", str(tmp_path / "bad"), "--size", "256", "--quiet", "--realism", "fog"]) == 2
     assert "choose from all, blur" in capsys.readouterr().err
     assert cli_main(["simulate", "--out", str(tmp_path / "bad"), "--size", "256", "--quiet", "--blur-px", "9"]) == 2
+
+
+def test_false_particles_on_a_reflection_are_counted():
+    from analysis.simulation.scoring import false_on_reflection
+
+    model = CameraModel.from_metadata(simulated_camera_metadata())
+    chamber = ChamberLight.build(Realism(reflection_dn=2000.0), seed=3)
+    band = chamber.sources[0]
+    truth = {"X": np.array([0.0, 1.0]), "Y": np.array([0.0, -1.0]), "Z": np.array([60.0, 60.5])}
+    # Found: both true ones, one false particle on the band's line of sight (at another depth), one far off it.
+    on_band_y = band.y_mm * 61.0 / band.z_mm
+    found = {"X": np.array([0.0, 1.0, 2.0, 2.0]), "Y": np.array([0.0, -1.0, on_band_y, -4.0]),
+             "Z": np.array([60.0, 60.5, 61.0, 61.0])}
+    assert false_on_reflection(found, truth, chamber, model) == 1
+    assert false_on_reflection(found, truth, ChamberLight(), model) == 0
+    doc = json.loads(json.dumps(chamber.to_dict(model)))
+    assert ChamberLight.from_dict(doc) == chamber

@@ -92,6 +92,11 @@ class ExtendedSource:
         return (max(int(math.floor(r0)), 0), min(int(math.ceil(r1)), h),
                 max(int(math.floor(c0)), 0), min(int(math.ceil(c1)), w))
 
+    @classmethod
+    def from_dict(cls, doc: dict) -> "ExtendedSource":
+        """Inverse of `to_dict` (its ``footprint_px`` is recomputed, not read)."""
+        return cls(**{k: v for k, v in doc.items() if k != "footprint_px"})
+
     def to_dict(self, model: CameraModel | None = None) -> dict:
         doc = asdict(self)
         if model is not None:
@@ -154,7 +159,14 @@ class ChamberLight:
         return hit
 
     def to_dict(self, model: CameraModel | None = None) -> dict:
+        """JSON-ready (``scenario.json``); with ``model``, each source's footprint on its sensor."""
         return {"glow_gradient": self.glow_gradient, "sources": [s.to_dict(model) for s in self.sources]}
+
+    @classmethod
+    def from_dict(cls, doc: dict) -> "ChamberLight":
+        """Inverse of `to_dict`: the chamber recorded in a ``scenario.json``."""
+        return cls(glow_gradient=float(doc.get("glow_gradient", 1.0)),
+                   sources=tuple(ExtendedSource.from_dict(s) for s in doc.get("sources", ())))
 
 
 def render_reflections(model: CameraModel, lattice: Lattice, chamber: ChamberLight, camera: CameraEffects | None
