@@ -113,13 +113,13 @@ def white_coverage(model: CameraModel, *, camera: CameraEffects | None = None) -
 
 
 def camera_coverage(model: CameraModel, camera: CameraEffects, *, lattice: Lattice | None = None,
-                    glow: ChamberLight | None = None) -> np.ndarray:
+                    chamber: ChamberLight | None = None) -> np.ndarray:
     """Diffuse light through the realistic camera: irradiance in units of a fully lit on-axis pixel,
     float32 (H, W), after the camera's point spread.
 
     Each micro-image is the aperture seen through the second stop (the intersection of two disks
     for lenses off axis), times the pixel response toward its rim, its lens's transmission and
-    chief-ray ``cos^4``, and with ``glow`` the chamber's glow profile at the lens.
+    chief-ray ``cos^4``, and with ``chamber`` the chamber's glow profile at the lens.
 
     Parameters
     ----------
@@ -128,8 +128,8 @@ def camera_coverage(model: CameraModel, camera: CameraEffects, *, lattice: Latti
     camera : CameraEffects
     lattice : Lattice, optional
         The micro-lens lattice the light passes; ``model``'s (the white images') by default.
-    glow : ChamberLight, optional
-        Scales each micro-image by the glow profile at its centre.
+    chamber : ChamberLight, optional
+        Its glow profile at each micro-image's centre scales the micro-image (plasma glow).
     """
     optics = _require_finite_p(model)
     lattice = model.lattice if lattice is None else lattice
@@ -139,8 +139,8 @@ def camera_coverage(model: CameraModel, camera: CameraEffects, *, lattice: Latti
     cy = np.ascontiguousarray(centres[:, 1])
     sx, sy = _lens_plane_m(model, cx, cy)
     value = chief_ray_cos4(np.hypot(sx, sy), optics.exit_pupil_m) * camera.lens_gain(ij[:, 0], ij[:, 1])
-    if glow is not None:
-        value = value * glow.glow_profile(model, cx, cy)
+    if chamber is not None:
+        value = value * chamber.glow_profile(model, cx, cy)
     stop = camera.second_stop(model)
     to_px = optics.mla_to_sensor_m / (optics.exit_pupil_m * optics.pixel_pitch_m)  # aperture m -> px
     if stop is None:
@@ -405,7 +405,7 @@ def render_exposure(model: CameraModel, particles: Particles, *, seed: int, back
     expected = blur(light, camera.blur_px)
     expected *= channel_response_map(model.height, model.width, responses)
     if background_dn > 0:
-        glow = camera_coverage(model, camera, lattice=lattice, glow=chamber)
+        glow = camera_coverage(model, camera, lattice=lattice, chamber=chamber)
         glow *= channel_response_map(model.height, model.width, WHITE_RESPONSE)
         glow *= np.float32(background_dn)
         expected += glow
