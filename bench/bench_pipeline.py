@@ -28,6 +28,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Sequence
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -64,14 +65,19 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def prepare_case(work: Path, scenario: str, seed: int, size: int, centre_z: float | None = None) -> Path:
-    """Simulate the case (once) and fill its calibration and look-up-table caches, in child processes."""
+def prepare_case(work: Path, scenario: str, seed: int, size: int, centre_z: float | None = None,
+                 simulate_args: Sequence[str] = (), tag: str = "") -> Path:
+    """Simulate the case (once) and fill its calibration and look-up-table caches, in child processes.
+
+    ``simulate_args`` are passed on to ``plenodust simulate`` (e.g. realism options); ``tag`` names
+    the case's folder apart from the plain one."""
     place = [] if centre_z is None else ["--centre-z", str(centre_z)]
-    folder = work / (f"{scenario}-{seed}-{size}" + ("" if centre_z is None else f"-z{centre_z:g}"))
+    folder = work / (f"{scenario}-{seed}-{size}" + ("" if centre_z is None else f"-z{centre_z:g}")
+                     + (f"-{tag}" if tag else ""))
     if not (folder / "IMG_0001.lfp").is_file():
         subprocess.run([sys.executable, "-m", "service.cli.main", "simulate", "--scenario", scenario,
-                        "--seed", str(seed), "--size", str(size), "--out", str(folder), "--quiet", *place],
-                       check=True, cwd=ROOT)
+                        "--seed", str(seed), "--size", str(size), "--out", str(folder), "--quiet", *place,
+                        *simulate_args], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
     if not (folder / "cache").is_dir():
         subprocess.run([sys.executable, "-m", "service.cli.main", "process", str(folder / "IMG_0001.lfp"),
                         "--calibration", str(folder / "calibration"), "--out", str(folder / "warm.csv"),
@@ -79,8 +85,9 @@ def prepare_case(work: Path, scenario: str, seed: int, size: int, centre_z: floa
     return folder
 
 
-def measure_case(folder: Path, params: PipelineParams, repeat: int) -> dict:
-    """In this (fresh) process: load the cached calibration, warm up, time ``repeat`` runs, score."""
+def measure_case(folder: Path, params: PipelineParams, repeat: int, table_out: Path | None = None) -> dict:
+    """In this (fresh) process: load the cached calibration, warm up, time ``repeat`` runs, score
+    (and write the particle table to ``table_out`` when given)."""
     t0 = time.perf_counter()
     warm_up()
     warm_s = time.perf_counter() - t0
@@ -102,6 +109,8 @@ def measure_case(folder: Path, params: PipelineParams, repeat: int) -> dict:
         result = process(exposure, calibration, params, cache=tables)
         times.append(time.perf_counter() - t0)
     truth = read_csv(folder / "IMG_0001.truth.csv")
+    if table_out is not None:
+        result.to_csv(table_out)
     s = score(result.particles, truth, nn_mm=nn)
     return {"score": s.to_dict(), "floor": depth_floor(truth, exposure.model.lattice, nn_mm=nn),
             "timings": result.timings, "wall_s": min(times), "first_s": first_s,
@@ -110,10 +119,12 @@ def measure_case(folder: Path, params: PipelineParams, repeat: int) -> dict:
 
 
 def run_case(work: Path, scenario: str, seed: int, size: int, params_json: str, repeat: int,
-             centre_z: float | None = None) -> dict:
-    folder = prepare_case(work, scenario, seed, size, centre_z)
+             centre_z: float | None = None, simulate_args: Sequence[str] = (), tag: str = "",
+             table_out: Path | None = None) -> dict:
+    folder = prepare_case(work, scenario, seed, size, centre_z, simulate_args, tag)
+    table = [] if table_out is None else ["--table-out", str(table_out)]
     out = subprocess.run([sys.executable, __file__, "--measure", str(folder), "--params", params_json,
-                          "--repeat", str(repeat)], check=True, cwd=ROOT, capture_output=True, text=True)
+                          "--repeat", str(repeat), *table], check=True, cwd=ROOT, capture_output=True, text=True)
     row = json.loads(out.stdout.strip().splitlines()[-1])
     row["score"] = Score(**row["score"])
     row.update(scenario=scenario, seed=seed)
@@ -142,10 +153,11 @@ def main() -> int:
                              "57.4 with --params '{\"alpha_min\": 0.999, \"alpha_max\": 1.026}' keeps every "
                              "particle's blur above a lens pitch")
     parser.add_argument("--measure", type=Path, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--table-out", type=Path, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     params = PipelineParams.from_dict(json.loads(args.params))
     if args.measure is not None:
-        print(json.dumps(measure_case(args.measure, params, args.repeat), default=float))
+        print(json.dumps(measure_case(args.measure, params, args.repeat, args.table_out), default=float))
         return 0
 
     work = args.work or Path(tempfile.mkdtemp(prefix="plenodust-bench-"))

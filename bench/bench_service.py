@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from service_helpers import variant_lfp  # noqa: E402
 from service_server import ServiceProcess  # noqa: E402
 
-from analysis.simulation.render import write_scenario  # noqa: E402
+from analysis.simulation.scenario_files import write_scenario  # noqa: E402
 
 OCTET = {"Content-Type": "application/octet-stream"}
 

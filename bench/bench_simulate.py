@@ -19,8 +19,8 @@ from _common import best_time, peak_rss_mb  # noqa: E402
 from analysis.camera.model import CameraModel  # noqa: E402
 from analysis.simulation.scenarios import SCENARIO_NAMES, make_scenario  # noqa: E402
 from analysis.simulation.camera import simulated_camera_metadata  # noqa: E402
-from analysis.simulation.render import (accumulate_particles, render_exposure, render_white_image,
-    write_scenario)  # noqa: E402
+from analysis.simulation.render import accumulate_particles, render_exposure, render_white_image  # noqa: E402
+from analysis.simulation.scenario_files import write_scenario  # noqa: E402
 
 
 

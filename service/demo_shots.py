@@ -1,6 +1,6 @@
 """A simulated experiment for ``plenodust demo``: a camera folder that gets a new shot every few seconds.
 
-The first shot and the white images come from :func:`analysis.simulation.render.write_scenario`;
+The first shot and the white images come from :func:`analysis.simulation.scenario_files.write_scenario`;
 each later shot is the same cluster a moment later (thermal jitter, slow drift), rendered
 by the simulator's forward model and added to the simulated camera's file system as the
 camera would store it (``IMG_nnnn.RAW`` + ``.TXT``). Shots are taken on a fixed clock (the
@@ -25,7 +25,8 @@ from analysis.formats.exposure import Exposure, txt_bytes
 from analysis.simulation.scenarios import make_scenario
 from analysis.simulation.camera import (DEFAULT_LENS, DEFAULT_SERIAL, simulated_camera_metadata,
     simulated_private_metadata)
-from analysis.simulation.render import in_view, particle_truth, render_exposure, write_scenario
+from analysis.simulation.render import in_view, particle_truth, render_exposure
+from analysis.simulation.scenario_files import write_scenario
 from driver.simulated import CameraFolder
 
 log = logging.getLogger(__name__)

@@ -10,7 +10,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from analysis.formats.exposure import Exposure, lfp_bytes, read_exposure
-from analysis.simulation.render import write_scenario
+from analysis.simulation.scenario_files import write_scenario
 
 # Small crops keep the tests fast on two cores; the pipeline still finds particles there.
 SIZE_PX = 480

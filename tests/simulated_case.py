@@ -13,7 +13,7 @@ from analysis.calibration.calibrate import Calibration
 from analysis.calibration.cache import load_calibration
 from analysis.formats.exposure import Exposure, read_exposure
 from analysis.formats.particle_table import read_csv
-from analysis.simulation.render import write_scenario
+from analysis.simulation.scenario_files import write_scenario
 
 
 @dataclass(frozen=True)

@@ -365,7 +365,7 @@ def test_simulated_camera_folder_end_to_end(tmp_path):
     import json
 
     from analysis.formats.exposure import read_exposure
-    from analysis.simulation.render import write_scenario
+    from analysis.simulation.scenario_files import write_scenario
 
     files = write_scenario(tmp_path / "sim", "tilted-layer", 3, size=SIZE)
     exposure = read_exposure(files.lfp[0])

@@ -22,7 +22,8 @@ from analysis.depth.table_index import TableIndex
 from analysis.lightfield.samples import select_samples
 from analysis.simulation.scenarios import Particles
 from analysis.simulation.camera import simulated_camera_metadata
-from analysis.simulation.render import render_exposure, white_coverage, write_scenario
+from analysis.simulation.render import render_exposure, white_coverage
+from analysis.simulation.scenario_files import write_scenario
 from simulated_case import mean_nn_mm
 
 

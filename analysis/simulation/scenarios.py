@@ -15,6 +15,15 @@ Scenarios
     1 to 2.5 mm nearer or farther, so their images overlap and ``B(alpha)`` shows two peaks.
 ``ball``
     A 3D "Yukawa ball" of 150 particles on three nested shells, 4 mm across.
+``cloud``
+    A 3D cloud of 400 particles filling an ellipsoid 10 x 7 x 4 mm (X, Y, Z) with a hard core of
+    0.5 mm between them, its centre 2.6 mm in front of the focus (alpha 1.003 ... 1.023), so
+    every particle's blur is about a lens pitch or more.
+
+``varied=True`` draws each cluster's size, shape, tilt and placement from wide ranges (a stream
+of its own of the seed), so that scenes are not the ones the pipeline was developed on; a given
+``centre_z_mm`` is kept. ``brightness_spread`` draws brightness log-uniform over that ratio
+about the median (another stream), leaving positions as they are.
 """
 
 from __future__ import annotations
@@ -28,7 +37,10 @@ import numpy as np
 from analysis.errors import ParameterError
 from .camera import DEFAULT_LENS
 
-SCENARIO_NAMES = ("tilted-layer", "shadowing", "ball")
+SCENARIO_NAMES = ("tilted-layer", "shadowing", "ball", "cloud")
+
+#: How far in front of the focus the cloud's centre lies by default, mm.
+CLOUD_IN_FRONT_MM = 2.6
 
 
 @dataclass(frozen=True)
@@ -78,20 +90,26 @@ class Scenario:
 
 
 def make_scenario(name: str, seed: int, *, centre_z_mm: float | None = None, brightness_dn: float = 1800.0,
-                  background_dn: float = 40.0) -> Scenario:
+                  background_dn: float = 40.0, varied: bool = False, brightness_spread: float | None = None
+                  ) -> Scenario:
     """Build a scenario's particles, deterministically from ``seed``.
 
     Parameters
     ----------
-    name : {"tilted-layer", "shadowing", "ball"}
+    name : {"tilted-layer", "shadowing", "ball", "cloud"}
     seed : int
     centre_z_mm : float, optional
-        Depth of the cluster centre; by default the simulated lens's focus distance plus a
-        seed-dependent offset of up to 0.3 mm.
+        Depth of the cluster centre; by default the simulated lens's focus distance (the cloud:
+        2.6 mm in front of it) plus a seed-dependent offset of up to 0.3 mm (up to 1 mm, varied).
     brightness_dn : float
         Median particle brightness (raw DN above black of a fully lit green pixel).
     background_dn : float
         Plasma glow: a uniform diffuse background, in the same units.
+    varied : bool
+        Draw the cluster's size, shape, tilt and placement from wide ranges (`vary_geometry`).
+    brightness_spread : float, optional
+        Ratio of the brightest to the faintest particle: brightness log-uniform over it about
+        ``brightness_dn``. By default a narrow log-normal spread (about 15 %).
 
     Returns
     -------
@@ -106,30 +124,72 @@ def make_scenario(name: str, seed: int, *, centre_z_mm: float | None = None, bri
         raise ParameterError(f"unknown scenario {name!r}; choose one of {', '.join(SCENARIO_NAMES)}")
     if brightness_dn <= 0 or background_dn < 0:
         raise ParameterError("brightness_dn must be positive and background_dn not negative")
+    if brightness_spread is not None and not (1.0 <= brightness_spread <= 1000.0):
+        raise ParameterError(f"brightness_spread={brightness_spread}: give a ratio of 1 ... 1000")
     rng = np.random.default_rng(seed)
+    geometry = vary_geometry(name, np.random.default_rng([seed, 0x5CE7E])) if varied else {}
+    nominal_z = DEFAULT_LENS.focus_distance_mm - (CLOUD_IN_FRONT_MM if name == "cloud" else 0.0)
     if centre_z_mm is None:
-        centre_z_mm = DEFAULT_LENS.focus_distance_mm + rng.uniform(-0.3, 0.3)
-    centre = np.array([*rng.uniform(-0.3, 0.3, size=2), centre_z_mm])
+        centre_z_mm = nominal_z + rng.uniform(-0.3, 0.3) + geometry.pop("centre_dz_mm", 0.0)
+    geometry.pop("centre_dz_mm", None)
+    lateral = geometry.pop("centre_lateral_mm", 0.3)
+    centre = np.array([*rng.uniform(-lateral, lateral, size=2), centre_z_mm])
+    partners = {k: geometry.pop(k) for k in ("fraction", "depth_range_mm", "max_depth_mm") if k in geometry}
     if name == "ball":
-        local, params = _ball(rng)
+        local, params = _ball(rng, **geometry)
         spread = 0.12
+    elif name == "cloud":
+        local, params = _cloud(rng, **geometry)
+        spread = 0.15
     else:
-        local, params = _tilted_layer(rng)
+        local, params = _tilted_layer(rng, **geometry)
         spread = 0.15
     x, y, z = local + centre[:, None]
     if name == "shadowing":
-        x, y, z, pairs = _add_shadowing_partners(x, y, z, rng, centre_z_mm)
+        x, y, z, pairs = _add_shadowing_partners(x, y, z, rng, centre_z_mm, **partners)
         params["shadowing_pairs"] = pairs
+        params.update({k: v for k, v in partners.items()})
     brightness = brightness_dn * np.exp(rng.normal(0.0, spread, size=x.size))
+    if brightness_spread is not None:
+        exponent = np.random.default_rng([seed, 0xB1]).uniform(-0.5, 0.5, size=x.size)
+        brightness = brightness_dn * brightness_spread ** exponent
+        params["brightness_spread"] = float(brightness_spread)
+    if varied:
+        params["varied"] = True
     params["centre_mm"] = [float(v) for v in centre]
     particles = Particles(x, y, z, brightness)
     return Scenario(name=name, seed=int(seed), particles=particles, background_dn=float(background_dn),
                     parameters=params)
 
 
+def vary_geometry(name: str, rng: np.random.Generator) -> dict[str, Any]:
+    """Cluster geometry drawn from wide ranges, for ``make_scenario(..., varied=True)``.
+
+    Layers: 11 ... 16 mm across, 45 ... 80 particles, tilted 6 ... 20 degrees about an axis up to
+    30 degrees from X. Shadowing partners: 15 ... 30 % of the particles, 0.6 ... 3 mm from their
+    host. Balls: 3.4 ... 7 mm across, flattened in Y by up to 20 %. Clouds: each axis 0.8 ... 1.25
+    times the nominal. The centre: up to 1 mm off in depth and laterally.
+    """
+    out: dict[str, Any] = {"centre_dz_mm": float(rng.uniform(-1.0, 1.0)),
+                           "centre_lateral_mm": float(rng.uniform(0.3, 1.0))}
+    if name in ("tilted-layer", "shadowing"):
+        out.update(diameter_mm=float(rng.uniform(11.0, 16.0)), count=int(rng.integers(45, 81)),
+                   tilt_deg=float(rng.uniform(6.0, 20.0)), tilt_axis_deg=float(rng.uniform(-30.0, 30.0)))
+        if name == "shadowing":
+            out.update(fraction=float(rng.uniform(0.15, 0.3)),
+                       depth_range_mm=(float(rng.uniform(0.6, 1.0)), float(rng.uniform(2.0, 3.0))),
+                       max_depth_mm=float(rng.uniform(1.9, 2.5)))
+    elif name == "ball":
+        out.update(scale=float(rng.uniform(0.85, 1.75)), flattening=float(rng.uniform(0.8, 1.0)))
+    elif name == "cloud":
+        out.update(semi_axes_mm=tuple(float(a * rng.uniform(0.8, 1.25)) for a in _CLOUD_SEMI_AXES_MM))
+    return out
+
+
 def _tilted_layer(rng: np.random.Generator, *, diameter_mm: float = 14.0, count: int = 60,
-                  tilt_deg: float = 13.0) -> tuple[np.ndarray, dict]:
-    """A monolayer crystal: jittered hexagonal lattice in a disk, tilted about X."""
+                  tilt_deg: float = 13.0, tilt_axis_deg: float = 0.0) -> tuple[np.ndarray, dict]:
+    """A monolayer crystal: jittered hexagonal lattice in a disk, tilted about X (turned by
+    ``tilt_axis_deg`` about Z)."""
     radius = diameter_mm / 2
     # Hexagonal density 2 / (sqrt(3) a^2) puts ``count`` particles in the disk.
     spacing = math.sqrt(2 * math.pi * radius ** 2 / (math.sqrt(3) * count))
@@ -152,6 +212,10 @@ def _tilted_layer(rng: np.random.Generator, *, diameter_mm: float = 14.0, count:
     y = b * math.cos(t) - c * math.sin(t)
     z = b * math.sin(t) + c * math.cos(t)
     params = {"tilt_deg": tilt_deg, "diameter_mm": diameter_mm, "spacing_mm": spacing}
+    if tilt_axis_deg:
+        turn = math.radians(tilt_axis_deg)
+        x, y = x * math.cos(turn) - y * math.sin(turn), x * math.sin(turn) + y * math.cos(turn)
+        params["tilt_axis_deg"] = tilt_axis_deg
     return np.stack([x, y, z]), params
 
 
@@ -183,10 +247,11 @@ def _add_shadowing_partners(x: np.ndarray, y: np.ndarray, z: np.ndarray, rng: np
     return (np.concatenate([x, px]), np.concatenate([y, py]), np.concatenate([z, pz]), pairs)
 
 
-def _ball(rng: np.random.Generator, *, shells: tuple[tuple[float, int], ...] = ((2.0, 90), (1.3, 45), (0.6, 15))
-          ) -> tuple[np.ndarray, dict]:
+def _ball(rng: np.random.Generator, *, shells: tuple[tuple[float, int], ...] = ((2.0, 90), (1.3, 45), (0.6, 15)),
+          scale: float = 1.0, flattening: float = 1.0) -> tuple[np.ndarray, dict]:
     """A Yukawa ball: particles spread evenly (Fibonacci spiral) on nested shells, each shell
-    turned at random, positions jittered."""
+    turned at random, positions jittered; radii times ``scale``, ``Y`` times ``flattening``."""
+    shells = tuple((r * scale, c) for r, c in shells)
     points = []
     for radius, count in shells:
         k = np.arange(count) + 0.5
@@ -197,7 +262,36 @@ def _ball(rng: np.random.Generator, *, shells: tuple[tuple[float, int], ...] = (
     xyz = np.concatenate(points, axis=1)
     xyz += rng.normal(0, 0.03, xyz.shape)
     params = {"diameter_mm": 2 * shells[0][0], "shells": [[r, c] for r, c in shells]}
+    if flattening != 1.0:
+        xyz[1] *= flattening
+        params["flattening"] = flattening
     return xyz, params
+
+
+_CLOUD_SEMI_AXES_MM = (5.0, 3.5, 2.0)
+
+
+def _cloud(rng: np.random.Generator, *, count: int = 400, semi_axes_mm: tuple[float, float, float] = _CLOUD_SEMI_AXES_MM,
+           hard_core_mm: float = 0.5) -> tuple[np.ndarray, dict]:
+    """A liquid-like cloud: ``count`` points uniform in an ellipsoid, none closer than ``hard_core_mm``
+    (random sequential addition)."""
+    axes = np.asarray(semi_axes_mm, dtype=np.float64)
+    accepted = np.empty((0, 3))
+    tries = 0
+    while accepted.shape[0] < count:
+        tries += 1
+        if tries > 200:
+            raise ParameterError(f"cannot place {count} particles {hard_core_mm} mm apart in a {2 * axes} mm "
+                                 "ellipsoid; make it larger or the hard core smaller")
+        batch = rng.uniform(-1.0, 1.0, size=(4 * count, 3))
+        batch = batch[np.sum(batch ** 2, axis=1) <= 1.0] * axes
+        for point in batch:
+            if accepted.shape[0] >= count:
+                break
+            if accepted.shape[0] == 0 or np.min(np.sum((accepted - point) ** 2, axis=1)) >= hard_core_mm ** 2:
+                accepted = np.vstack([accepted, point])
+    params = {"semi_axes_mm": [float(a) for a in axes], "hard_core_mm": hard_core_mm, "count": count}
+    return accepted.T.copy(), params
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:

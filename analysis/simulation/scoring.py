@@ -17,7 +17,10 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from .floor_kernels import lit_pattern, same_pattern_counts
-from analysis.camera.model import Lattice
+from analysis.camera.model import CameraModel, Lattice
+from .chamber import ChamberLight
+from .render import particle_truth
+from .scenarios import Particles
 
 #: Defocus bins (blur diameter in lens pitches) for the depth error breakdown.
 BLUR_BINS: tuple[tuple[float, float], ...] = ((0.0, 0.5), (0.5, 1.0), (1.0, 2.0), (2.0, math.inf))
@@ -177,6 +180,36 @@ def mean_nn_distance(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> float:
     return float(d[:, 1].mean())
 
 
+def match(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], *, nn_mm: float | None = None,
+          max_distance: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Pair found particles with true ones one-to-one (Hungarian method on the 3D distance).
+
+    Parameters
+    ----------
+    found, truth : mappings with columns ``X, Y, Z`` (mm)
+    nn_mm : float, optional
+        Mean nearest-neighbour distance; default: computed from the truth.
+    max_distance : float
+        Largest 3D distance of a valid pair, as a fraction of ``nn_mm``.
+
+    Returns
+    -------
+    rows, cols : ndarray of int
+        Indices into ``found`` and ``truth`` of the pairs; found particles not in ``rows`` are false.
+    """
+    tx, ty, tz = (np.asarray(truth[c], float) for c in ("X", "Y", "Z"))
+    fx, fy, fz = (np.asarray(found[c], float) for c in ("X", "Y", "Z"))
+    nn = mean_nn_distance(tx, ty, tz) if nn_mm is None else float(nn_mm)
+    if not (tx.size and fx.size):
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+    cost = np.sqrt((fx[:, None] - tx) ** 2 + (fy[:, None] - ty) ** 2 + (fz[:, None] - tz) ** 2)
+    limit = max_distance * nn
+    cost = np.where(np.isfinite(cost), cost, 1e9)
+    rows, cols = linear_sum_assignment(np.where(cost <= limit, cost, 1e9))
+    ok = cost[rows, cols] <= limit
+    return rows[ok], cols[ok]
+
+
 def score(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], *, nn_mm: float | None = None,
           max_distance: float = 0.5, pair_lateral: float = 0.35) -> Score:
     """Pair found particles with true ones and measure recall, precision and errors.
@@ -200,15 +233,7 @@ def score(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], *, n
     fx, fy, fz = (np.asarray(found[c], float) for c in ("X", "Y", "Z"))
     nn = mean_nn_distance(tx, ty, tz) if nn_mm is None else float(nn_mm)
     n_true, n_found = tx.size, fx.size
-    cost = np.sqrt((fx[:, None] - tx) ** 2 + (fy[:, None] - ty) ** 2 + (fz[:, None] - tz) ** 2)
-    limit = max_distance * nn
-    if n_true and n_found:
-        cost = np.where(np.isfinite(cost), cost, 1e9)
-        rows, cols = linear_sum_assignment(np.where(cost <= limit, cost, 1e9))
-        ok = cost[rows, cols] <= limit
-        rows, cols = rows[ok], cols[ok]
-    else:
-        rows = cols = np.empty(0, dtype=np.int64)
+    rows, cols = match(found, truth, nn_mm=nn, max_distance=max_distance)
     m = rows.size
     dz = fz[rows] - tz[cols]
     lateral = np.hypot(fx[rows] - tx[cols], fy[rows] - ty[cols])
@@ -235,3 +260,28 @@ def score(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], *, n
                  depth_abs_rms_over_nn=float(np.sqrt(np.mean(dz**2))) / nn if m else math.nan,
                  lateral_rms_over_nn=float(np.sqrt(np.mean(lateral**2))) / nn if m else math.nan,
                  depth_by_blur=by_blur, pairs_total=len(pairs), pairs_separated=separated)
+
+
+def false_on_reflection(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], chamber: ChamberLight,
+                        model: CameraModel, *, nn_mm: float | None = None, max_distance: float = 0.5) -> int:
+    """How many found particles match no true one and sit where a reflection's light falls.
+
+    A found particle's place on the sensor is its chief ray through ``model``'s thin lens (as the
+    truth's ``x, y``); the reflections' footprints are :meth:`ChamberLight.on_reflection`'s.
+
+    Parameters
+    ----------
+    found, truth : mappings with columns ``X, Y, Z`` (mm)
+    chamber : ChamberLight
+        The exposure's chamber (``ChamberLight.from_dict`` of its ``scenario.json``).
+    model : CameraModel
+        The exposure's camera model (from its metadata).
+    """
+    rows, _ = match(found, truth, nn_mm=nn_mm, max_distance=max_distance)
+    fx, fy, fz = (np.asarray(found[c], float) for c in ("X", "Y", "Z"))
+    false = np.setdiff1d(np.arange(fx.size), rows)
+    false = false[np.isfinite(fz[false]) & (fz[false] > model.optics.focal_length_m * 1e3)]
+    if not chamber.sources or false.size == 0:
+        return 0
+    where = particle_truth(model, Particles(fx[false], fy[false], fz[false], np.zeros(false.size)))
+    return int(np.sum(chamber.on_reflection(model, where.x_px, where.y_px)))

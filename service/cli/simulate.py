@@ -5,12 +5,16 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
-from analysis.errors import AnalysisError
-from analysis.simulation.scenarios import SCENARIO_NAMES
+from analysis.errors import AnalysisError, ParameterError
 from analysis.simulation.camera import F01_SIZE
-from analysis.simulation.render import write_scenario
+from analysis.simulation.realism import EFFECTS, Realism
+from analysis.simulation.scenario_files import write_scenario
+from analysis.simulation.scenarios import SCENARIO_NAMES
+
+_TYPICAL = Realism.typical()
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -20,7 +24,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "DIR/IMG_nnnn.lfp, IMG_nnnn.RAW + .TXT, IMG_nnnn.truth.csv (X, Y, Z in mm), "
                     "DIR/calibration/MOD_nnnn.RAW + .TXT white images and DIR/scenario.json.")
     parser.add_argument("--scenario", choices=SCENARIO_NAMES, default="tilted-layer",
-                        help="cluster to simulate (default: tilted-layer, the paper's 13-degree layer)")
+                        help="cluster to simulate (default: tilted-layer, the paper's 13-degree layer; cloud: 400 "
+                             "particles 2.6 mm in front of focus)")
     parser.add_argument("--seed", type=int, default=1, help="random seed; the same seed writes the same bytes")
     parser.add_argument("--out", type=Path, required=True, help="folder to write into (created)")
     parser.add_argument("--count", type=int, default=1,
@@ -35,8 +40,95 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--centre-z", type=float, default=None, metavar="MM",
                         help="distance of the cluster's centre from the lens (default: the focus distance, "
                              "+-0.3 mm); a few mm off focus keeps every particle's blur above a lens pitch")
+    parser.add_argument("--serial", default=None,
+                        help="camera serial (default A202160042); seeds the camera's hot pixels and lens "
+                             "transmission")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    add_realism_arguments(parser)
     parser.set_defaults(func=run)
+
+
+def add_realism_arguments(parser: argparse.ArgumentParser) -> None:
+    """The realism options: ``--realism [EFFECTS]`` and one option per parameter."""
+    t = _TYPICAL
+    group = parser.add_argument_group(
+        "realism", "Effects of a real F01 in a plasma chamber that the pipeline is not told about (ideal camera by "
+                   "default). --realism starts from a typical F01's values; each option below turns its effect on "
+                   "(at the typical value when given without one) or overrides the preset; 0 (1 for ratios) "
+                   "turns an effect off. Recorded in scenario.json.")
+    group.add_argument("--realism", nargs="?", const="all", default=None, metavar="EFFECTS",
+                       help="start from the typical F01 in a chamber: 'all' (the default) or a comma-separated list "
+                            f"of {', '.join(EFFECTS)}")
+    group.add_argument("--blur-px", type=float, default=None, metavar="SIGMA",
+                       help=f"sigma of the point spread in px (ideal 0.5; typical {t.blur_px})")
+    group.add_argument("--rim-response", type=float, default=None, metavar="R",
+                       help=f"pixel response at a micro-image's rim relative to its centre (ideal 1; typical "
+                            f"{t.rim_response})")
+    group.add_argument("--lens-transmission-spread", type=float, default=None, metavar="FRACTION",
+                       help=f"relative spread of the micro-lenses' transmission (typical {t.lens_transmission_spread})")
+    group.add_argument("--vignetting", type=float, nargs="?", const=t.vignetting_corner_cut, default=None,
+                       metavar="CORNER_CUT",
+                       help="second stop in the main lens: fraction of the aperture diameter cut off at the sensor's "
+                            f"corner (typical {t.vignetting_corner_cut}); cat's-eye micro-images")
+    group.add_argument("--vignetting-onset", type=float, default=None, metavar="FRACTION",
+                       help=f"field radius (of the half-diagonal) where the second stop starts to cut (typical "
+                            f"{t.vignetting_onset})")
+    group.add_argument("--hot-pixels", type=float, nargs="?", const=t.hot_pixel_fraction, default=None,
+                       metavar="FRACTION", help=f"fraction of hot and stuck pixels, fixed per camera serial (typical "
+                                               f"{t.hot_pixel_fraction:g})")
+    group.add_argument("--dead-pixels", type=float, nargs="?", const=t.dead_pixel_fraction, default=None,
+                       metavar="FRACTION", help=f"fraction of dead pixels (typical {t.dead_pixel_fraction:g})")
+    group.add_argument("--glow", type=float, nargs="?", const=t.glow_gradient, default=None, metavar="RATIO",
+                       help=f"plasma glow at the bottom of the field over that at the top (typical {t.glow_gradient:g})")
+    group.add_argument("--reflection", type=float, nargs="?", const=t.reflection_dn, default=None, metavar="DN",
+                       help=f"laser band reflected off the lower electrode, out of focus: peak radiance in DN "
+                            f"(typical {t.reflection_dn:g})")
+    group.add_argument("--glints", type=int, nargs="?", const=t.glints, default=None, metavar="N",
+                       help=f"out-of-focus glints (typical {t.glints}, of about --glint-dn each)")
+    group.add_argument("--glint-dn", type=float, default=None, metavar="DN",
+                       help=f"typical peak radiance of a glint (typical {t.glint_dn:g})")
+    group.add_argument("--brightness-spread", type=float, nargs="?", const=t.brightness_spread, default=None,
+                       metavar="RATIO", help=f"brightest over faintest particle, log-uniform about --brightness "
+                                             f"(typical {t.brightness_spread:g}; saturates in-focus particles)")
+    group.add_argument("--lattice-drift-px", type=float, nargs="+", default=None, metavar="D",
+                       help="shift DX [DY] in px of the micro-lens lattice in the exposure from the white images' "
+                            f"(typical {t.lattice_drift_px[0]:g} {t.lattice_drift_px[1]:g})")
+    group.add_argument("--lattice-drift-rad", type=float, default=None, metavar="RAD",
+                       help=f"rotation of the lattice in the exposure from the white images' (typical "
+                            f"{t.lattice_drift_rad:g})")
+    group.add_argument("--varied-scene", action=argparse.BooleanOptionalAction, default=None,
+                       help="draw the cluster's size, shape, tilt and placement from wide ranges")
+
+
+def realism_from_args(args: argparse.Namespace) -> Realism:
+    """The `Realism` the options ask for: the preset's effect groups, then each option given.
+
+    Raises
+    ------
+    ParameterError
+        An unknown effect name, or a value out of range.
+    """
+    effects = [] if args.realism is None else [e.strip() for e in args.realism.split(",") if e.strip()]
+    realism = Realism.only(*effects) if effects else Realism()
+    changes: dict = {}
+    for option, name in [("blur_px", "blur_px"), ("rim_response", "rim_response"),
+                         ("lens_transmission_spread", "lens_transmission_spread"),
+                         ("vignetting", "vignetting_corner_cut"), ("vignetting_onset", "vignetting_onset"),
+                         ("hot_pixels", "hot_pixel_fraction"), ("dead_pixels", "dead_pixel_fraction"),
+                         ("glow", "glow_gradient"), ("reflection", "reflection_dn"), ("glints", "glints"),
+                         ("glint_dn", "glint_dn"), ("brightness_spread", "brightness_spread"),
+                         ("lattice_drift_rad", "lattice_drift_rad"), ("varied_scene", "varied_scene")]:
+        value = getattr(args, option)
+        if value is not None:
+            changes[name] = value
+    if args.lattice_drift_px is not None:
+        if len(args.lattice_drift_px) > 2:
+            raise ParameterError("--lattice-drift-px takes DX and optionally DY")
+        drift = list(args.lattice_drift_px) + [0.0] * (2 - len(args.lattice_drift_px))
+        changes["lattice_drift_px"] = tuple(drift)
+    if changes.get("glints") and "glint_dn" not in changes and realism.glint_dn == 0:
+        changes["glint_dn"] = _TYPICAL.glint_dn
+    return replace(realism, **changes)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -47,9 +139,11 @@ def run(args: argparse.Namespace) -> int:
             print(f"[{time.perf_counter() - start:6.1f} s] {line}", file=sys.stderr, flush=True)
 
     try:
+        realism = realism_from_args(args)
+        serial = {} if args.serial is None else {"serial": args.serial}
         files = write_scenario(args.out, args.scenario, args.seed, count=args.count, size=args.size,
                                brightness_dn=args.brightness, background_dn=args.background,
-                               centre_z_mm=args.centre_z, progress=progress)
+                               centre_z_mm=args.centre_z, realism=realism, progress=progress, **serial)
     except AnalysisError as exc:
         print(f"plenodust simulate: {exc}", file=sys.stderr)
         return 2
