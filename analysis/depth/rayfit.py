@@ -151,10 +151,23 @@ def unexplained_light(image: np.ndarray, table: LightFieldTable, sx_m: np.ndarra
     left = ((flat[table.pixel_index[g.ids]].astype(np.float64) - table.black_level) / idx.weight(g.ids)
             - background_per_lens(table, background)[table.lens[g.ids]] - explained[g.ids])
     left = np.where(left > floor, left, 0.0)
-    per_lens = np.add.reduceat(left, g.sample_ptr[:-1]) if left.size else np.zeros(0)
+    return _sum_per_point(left, g, len(sx_m))
+
+
+def explained_light(table: LightFieldTable, sx_m: np.ndarray, sy_m: np.ndarray, radius_m: np.ndarray, *,
+                    explained: np.ndarray, cache: Cache | None = None) -> np.ndarray:
+    """The light of fitted particles (``explained``, from :func:`render_fits`) in the lenses within
+    ``radius_m`` of each point; one sum per point (devignetted DN)."""
+    g = table_index(table, cache).gather(np.asarray(sx_m, float), np.asarray(sy_m, float),
+                                         np.asarray(radius_m, float))
+    return _sum_per_point(explained[g.ids].astype(np.float64), g, len(sx_m))
+
+
+def _sum_per_point(values: np.ndarray, g: Gathered, n: int) -> np.ndarray:
+    per_lens = np.add.reduceat(values, g.sample_ptr[:-1]) if values.size else np.zeros(0)
     per_lens = np.where(np.diff(g.sample_ptr) > 0, per_lens, 0.0)
-    owner = np.repeat(np.arange(len(sx_m)), np.diff(g.lens_ptr))
-    return np.bincount(owner, weights=per_lens, minlength=len(sx_m))
+    owner = np.repeat(np.arange(n), np.diff(g.lens_ptr))
+    return np.bincount(owner, weights=per_lens, minlength=n)
 
 
 def render_fits(table: LightFieldTable, fit: RayFit, *, aperture_per_lens_plane: float, blur_px: float = 0.5,

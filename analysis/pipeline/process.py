@@ -51,6 +51,7 @@ from analysis.camera.image_grid import ImageGrid
 from analysis.camera.model import CameraModel
 from analysis.depth.deblend import deblend, split_shared
 from analysis.depth.prior import apply_depth_prior
+from analysis.depth.quality import drop_extended
 from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
 from analysis.depth.refine import (COARSE_LATERAL_PITCHES, COARSE_TEMPERATURE, PROBE_FRACTION, PROBE_RESIDUAL,
                                    RayFitter, inside, refine_peaks, residual_image)
@@ -141,9 +142,9 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         alphas = survey_alphas(table)  # until the survey has found the range
 
     def finish(peaks: Peaks, tracks: Tracks | None, stack: np.ndarray | None, sub: np.ndarray | None,
-               threshold: float, fit: RayFit | None = None) -> Result:
+               threshold: float, fit: RayFit | None = None, quality: dict | None = None) -> Result:
         with clock.stage("coordinates"):
-            particles, curves = _particle_table(peaks, tracks, alphas, table, coordinates, warnings, fit)
+            particles, curves = _particle_table(peaks, tracks, alphas, table, coordinates, warnings, fit, quality)
             dropped = rejected.table()
             dropped.update(zip("XYZ", _physical(dropped["x"], dropped["y"], dropped["alpha"], grid, coordinates)))
         save_normalisations(table, calibration, cache, grid_oversample=params.grid_oversample, before=norms_before)
@@ -204,7 +205,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
             warnings.append(f"{low.size + high.size} particle(s) look brightest at the edge of the alpha range "
                             f"{alphas[0]:.4f} ... {alphas[-1]:.4f} ({low.size} at its start, {high.size} at its "
                             "end) and may lie outside it: widen the range, or leave it out so the pipeline finds it")
-    fit = None
+    fit, quality = None, {}
     if fitter is not None and len(peaks):
         with clock.stage("refine"):
             peaks, fit = inside(fitter, *refine_peaks(fitter, peaks, shadow_probe=params.shadow_probe), limits)
@@ -223,13 +224,16 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         if params.depth_prior and len(peaks) > 1:
             with clock.stage("depth_prior"):
                 peaks, fit = apply_depth_prior(fitter, peaks, fit)
+        with clock.stage("quality"):
+            peaks, fit, share = drop_extended(fitter, peaks, fit)
+            quality = {"leftover": share}
     if len(peaks) == 0:
         if len(tracks):
             warnings.append("particles were seen, but none is brightest inside the alpha range "
                             f"{alphas[0]:.4f} ... {alphas[-1]:.4f}; widen the range")
         else:
             warnings.append("no particles found above the noise; check the exposure and the threshold")
-    return finish(peaks, tracks, stack, sub, threshold, fit)
+    return finish(peaks, tracks, stack, sub, threshold, fit, quality)
 
 
 def _survey(image: np.ndarray, table: LightFieldTable, samples, sub: np.ndarray, survey: np.ndarray,
@@ -301,13 +305,14 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, background: Backgroun
 
 
 def _particle_table(peaks: Peaks, tracks: Tracks | None, alphas: np.ndarray, table: LightFieldTable,
-                    coordinates: Calibration3D, warnings: list[str], fit: RayFit | None = None
-                    ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+                    coordinates: Calibration3D, warnings: list[str], fit: RayFit | None = None,
+                    quality: dict[str, np.ndarray] | None = None) -> tuple[dict[str, np.ndarray], np.ndarray]:
     n = len(peaks)
     # Order particles by image position (row, then column) so tables compare between runs.
     order = np.lexsort((peaks.x, peaks.y)) if n else np.empty(0, dtype=np.int64)
     peaks = peaks.take(order)
     nan = np.full(n, np.nan)
+    quality = {name: np.asarray(v, float)[order] for name, v in (quality or {}).items()}
     fit = None if fit is None else fit.take(order)
     X, Y, Z = _physical(peaks.x, peaks.y, peaks.alpha, table.grid, coordinates)
     if n and not np.isfinite(Z).any():
@@ -330,7 +335,8 @@ def _particle_table(peaks: Peaks, tracks: Tracks | None, alphas: np.ndarray, tab
                  "n_lit": nan if fit is None else fit.n_lit.astype(float),
                  # Diameter of the blur disk on the micro-lens array, in lens pitches (as the
                  # simulator's truth tables give it): below 1 one lens may hold all the light.
-                 "blur_pitches": 2.0 * np.abs(1.0 - 1.0 / peaks.alpha) * table.aperture_radius_m / pitch}
+                 "blur_pitches": 2.0 * np.abs(1.0 - 1.0 / peaks.alpha) * table.aperture_radius_m / pitch,
+                 "leftover": quality.get("leftover", nan)}
     return particles, curves
 
 
