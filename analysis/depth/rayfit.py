@@ -128,14 +128,12 @@ COARSE = FitGrid(depths=33, lateral_pitches=0.4, positions=3, pixel_points=1, te
 FINE = FitGrid(depths=9, lateral_pitches=0.25, positions=3, pixel_points=3, temperature=0.5)
 
 
-def background_per_lens(table: LightFieldTable, background: float | np.ndarray) -> np.ndarray:
-    """The background behind each lens of ``table`` (devignetted DN): one level for all, or already
-    one per lens."""
-    background = np.asarray(background, dtype=np.float64)
-    if background.ndim == 0:
-        return np.full(table.n_lenses, float(background))
-    if background.shape != (table.n_lenses,):
-        raise ValueError(f"background holds {background.size} levels for a table of {table.n_lenses} lenses")
+def background_per_sample(table: LightFieldTable, background: float | np.ndarray) -> np.ndarray:
+    """The background as the kernels take it (float32): one value for all samples of ``table``, or
+    one per sample (:meth:`analysis.lightfield.background.BackgroundMap.per_sample`)."""
+    background = np.atleast_1d(np.asarray(background, dtype=np.float32))
+    if background.size not in (1, table.n_samples):
+        raise ValueError(f"background holds {background.size} levels for a table of {table.n_samples} samples")
     return background
 
 
@@ -144,14 +142,19 @@ def unexplained_light(image: np.ndarray, table: LightFieldTable, sx_m: np.ndarra
                       cache: Cache | None = None) -> np.ndarray:
     """Light above ``floor`` (devignetted DN) left unexplained in the lenses within ``radius_m`` of
     each point, after taking off ``explained`` (from :func:`render_fits`); one sum per point.
-    ``background``: one level, or one per lens of ``table``."""
+    ``background``: one level, or one per sample of ``table``."""
     idx = table_index(table, cache)
     g = idx.gather(np.asarray(sx_m, float), np.asarray(sy_m, float), np.asarray(radius_m, float))
     flat = np.ascontiguousarray(image).reshape(-1)
     left = ((flat[table.pixel_index[g.ids]].astype(np.float64) - table.black_level) / idx.weight(g.ids)
-            - background_per_lens(table, background)[table.lens[g.ids]] - explained[g.ids])
+            - _at(background_per_sample(table, background), g.ids) - explained[g.ids])
     left = np.where(left > floor, left, 0.0)
     return _sum_per_point(left, g, len(sx_m))
+
+
+def _at(values: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """``values[ids]``, or the one value for all."""
+    return values[ids] if values.size > 1 else np.full(ids.size, values[0])
 
 
 def explained_light(table: LightFieldTable, sx_m: np.ndarray, sy_m: np.ndarray, radius_m: np.ndarray, *,
@@ -272,9 +275,9 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
     sx0_m, sy0_m, alpha0 : ndarray of shape (n,)
         Starting positions (lens plane, metres) and refocus parameters, e.g. from the
         brightness maxima of the refocused stack.
-    background : float or ndarray of shape (table.n_lenses,)
-        Background (DN above black per unit white weight) to subtract: one level, or one per lens
-        (:meth:`analysis.lightfield.background.BackgroundMap.per_lens`).
+    background : float or ndarray of shape (table.n_samples,)
+        Background (DN above black per unit white weight) to subtract: one level, or one per sample
+        (:meth:`analysis.lightfield.background.BackgroundMap.per_sample`).
     aperture_per_lens_plane : float
         Aperture metres per lens-plane metre between neighbouring micro-images, ``(P + d) / d``
         (:func:`aperture_per_lens_plane`): how far apart two lenses' images of one aperture point are.
@@ -324,8 +327,8 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
     g = idx.gather(sx0, sy0, reach)
     values = np.empty(g.ids.size)
     uv = np.empty((g.ids.size, 2))
-    render_kernels.sample_values(flat, table.pixel_index, table.weight, table.lens, table.u_m, table.v_m, g.ids,
-                                 float(table.black_level), background_per_lens(table, background),
+    render_kernels.sample_values(flat, table.pixel_index, table.weight, table.u_m, table.v_m, g.ids,
+                                 float(table.black_level), background_per_sample(table, background),
                                  np.zeros(0, np.float32) if subtract is None else subtract, subtract is not None,
                                  values, uv)
     if own is not None:

@@ -95,8 +95,8 @@ class RayFitter:
         The depth fit's table, with the micro-image rims (``analysis.pipeline.tables.FIT_TABLE_RIM_PX``).
     grid : ImageGrid
         Output-image pixels of the candidates.
-    background : float or ndarray of shape (table.n_lenses,)
-        One level, or one per lens of ``table``, as :func:`analysis.depth.rayfit.fit_rays` takes it.
+    background : float or ndarray of shape (table.n_samples,)
+        One level, or one per sample of ``table``, as :func:`analysis.depth.rayfit.fit_rays` takes it.
     aperture_per_lens_plane, alpha_half_range : float
         As :func:`analysis.depth.rayfit.fit_rays` takes them.
     coarse : FitGrid

@@ -1,13 +1,16 @@
-"""Light that does not come from particles: plasma glow and out-of-focus reflections, lens by lens.
+"""Light that does not come from particles: plasma glow and out-of-focus reflections.
 
-A dust particle lights a small patch of each micro-image it reaches (the part of the aperture
-whose rays enter that lens), or one micro-image when it is near focus. Glow, and light from
-sources far out of focus (a laser band reflected by an electrode, glints), lights whole
-micro-images alike and changes slowly from lens to lens. So each lens's median devignetted value
-measures the extended light behind it, and a median over its neighbours removes the few lenses
-that a near-focus particle fills. What is left after subtracting that map, ``level[lens] *
-weight`` per sample, is particle light (and the edges of extended sources, which the fit then
-rejects: they converge to no point).
+Seen through one aperture point, that is in one sub-aperture image (one sample per lens, the
+samples at the same place in every micro-image), a particle is a point: the ray from that
+aperture point toward it enters one lens. Glow, and light from sources far out of focus (a laser
+band reflected by an electrode, glints), is extended there and changes slowly from lens to lens.
+So a median over a lens's neighbours, taken at the same aperture point, gives the extended light
+behind each sample and leaves the particles out, however crowded or defocused they are.
+
+Working that out for every sample costs too much, and most of the sensor sees only glow, which
+lights whole micro-images alike: there each lens's median value, a median over its neighbours,
+gives its level. Only where that level stands out from the glow (reflections, glints, and their
+surroundings) is the background taken sample by sample.
 """
 
 from __future__ import annotations
@@ -16,21 +19,26 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
-from scipy.ndimage import median_filter
+from scipy.ndimage import binary_dilation, median_filter
 
 from .table import LightFieldTable
 
-#: Neighbourhood of the spatial median, in lenses (a square in lattice indices, 25 lenses): a group
-#: of up to 12 lenses that particles fill, near focus, leaves the map alone.
+#: Neighbourhood of the medians over lenses, in lenses (a square in lattice indices, 25 lenses).
 NEIGHBOURHOOD_LENSES = 5
 #: Samples nearer the micro-image centre than this fraction of its radius measure a lens's level
 #: (the rims carry the neighbours' cross-talk and the vignetting's steepest slope).
 CENTRAL_FRACTION = 0.8
+#: Lenses whose level stands this many noise sigmas (of one sample) above the typical one hold
+#: structured extended light (a lens's median over its ~50 central samples is 5 times less noisy):
+#: their background is taken sample by sample, and that of the lenses around them ...
+STRUCTURED_SIGMAS = 1.0
+#: ... up to this many lenses away (the soft edges of out-of-focus sources).
+STRUCTURED_MARGIN_LENSES = 5
 
 
 @dataclass(frozen=True)
 class BackgroundMap:
-    """Extended light per lens, in devignetted DN (per unit white-image weight).
+    """Extended light, in devignetted DN (per unit white-image weight).
 
     Attributes
     ----------
@@ -38,16 +46,22 @@ class BackgroundMap:
         Level of lens ``(i, j)`` at ``level[j - j0, i - i0]``.
     i0, j0 : int
         Lattice index of ``level[0, 0]``.
+    pixels : ndarray of int64, sorted
+        Flat sensor indices of the samples whose background was taken one by one ...
+    values : ndarray of float32
+        ... and their background (replacing their lens's level).
     """
 
     level: np.ndarray
     i0: int
     j0: int
+    pixels: np.ndarray
+    values: np.ndarray
 
     @staticmethod
     def uniform(level: float) -> "BackgroundMap":
         """One level everywhere (a diffuse glow)."""
-        return BackgroundMap(np.full((1, 1), float(level)), 0, 0)
+        return BackgroundMap(np.full((1, 1), float(level)), 0, 0, np.empty(0, np.int64), np.empty(0, np.float32))
 
     @property
     def median(self) -> float:
@@ -63,18 +77,33 @@ class BackgroundMap:
         ii = np.clip(table.lens_ij[:, 0] - self.i0, 0, self.level.shape[1] - 1)
         return np.ascontiguousarray(self.level[jj, ii], dtype=np.float64)
 
+    def per_sample(self, table: LightFieldTable) -> np.ndarray:
+        """The background behind each sample of ``table`` (float32, ``table.n_samples``)."""
+        out = self.per_lens(table).astype(np.float32)[table.lens]
+        if self.pixels.size:
+            at = np.searchsorted(self.pixels, table.pixel_index)
+            found = np.flatnonzero(at < self.pixels.size)
+            found = found[self.pixels[at[found]] == table.pixel_index[found]]
+            out[found] = self.values[at[found]]
+        return out
 
-def estimate_background(image: np.ndarray, table: LightFieldTable, *,
+
+def estimate_background(image: np.ndarray, table: LightFieldTable, *, noise_dn: float,
                         neighbourhood: int = NEIGHBOURHOOD_LENSES) -> BackgroundMap:
-    """The extended light behind each lens of a raw exposure (see the module docstring).
+    """The extended light behind each sample of a raw exposure (see the module docstring).
 
     Parameters
     ----------
     image : ndarray of shape (H, W), uint16
         Raw sensor counts.
     table : LightFieldTable
+        Any table of the exposure's camera; the one with the micro-image rims (the depth fit's)
+        covers every sample the others use.
+    noise_dn : float
+        Noise of one background sample (DN): how far above the typical level a lens must stand
+        to have its background taken sample by sample.
     neighbourhood : int
-        Side, in lenses, of the spatial median over each lens's neighbours.
+        Side, in lenses, of the medians over neighbours.
 
     Returns
     -------
@@ -88,11 +117,31 @@ def estimate_background(image: np.ndarray, table: LightFieldTable, *,
     i0, j0 = (int(v) for v in table.lens_ij.min(axis=0))
     n_i, n_j = (int(v) + 1 for v in table.lens_ij.max(axis=0) - (i0, j0))
     grid = np.full((n_j, n_i), np.nan)
-    grid[table.lens_ij[:, 1] - j0, table.lens_ij[:, 0] - i0] = medians
+    jj, ii = table.lens_ij[:, 1] - j0, table.lens_ij[:, 0] - i0
+    grid[jj, ii] = medians
+    typical = float(np.nanmedian(medians)) if np.isfinite(medians).any() else 0.0
     # Cells of the index rectangle with no lens (the sensor's parallelogram corners, lenses with no
-    # central sample) take the overall median before the spatial median.
-    grid = np.where(np.isfinite(grid), grid, np.nanmedian(medians) if np.isfinite(medians).any() else 0.0)
-    return BackgroundMap(median_filter(grid, size=neighbourhood, mode="nearest"), i0, j0)
+    # central sample) take the typical level before the spatial median.
+    level = median_filter(np.where(np.isfinite(grid), grid, typical), size=neighbourhood, mode="nearest")
+    # Where extended light stands out, sample by sample, over the lenses around those.
+    structured = binary_dilation(level > typical + STRUCTURED_SIGMAS * max(noise_dn, 0.5),
+                                 iterations=STRUCTURED_MARGIN_LENSES)
+    marked = structured[jj, ii]
+    if not marked.any():
+        return BackgroundMap(level, i0, j0, np.empty(0, np.int64), np.empty(0, np.float32))
+    lens_at = np.full((n_j, n_i), -1, dtype=np.int64)
+    lens_at[jj, ii] = np.arange(table.n_lenses)
+    u_per_px = table.aperture_radius_m / table.micro_image_radius_px
+    half = int(np.ceil(table.micro_image_radius_px + 1.0))
+    ids, values = _structured_background(flat, table.pixel_index, table.weight, table.u_m, table.v_m, start,
+                                         table.lens_ij.astype(np.int64) - np.array([i0, j0]), lens_at,
+                                         marked, float(table.black_level), float(u_per_px), half,
+                                         neighbourhood // 2)
+    lens_level = level[jj, ii]
+    values = np.where(np.isnan(values), lens_level[table.lens[ids]], values).astype(np.float32)
+    pixels = table.pixel_index[ids].astype(np.int64)
+    order = np.argsort(pixels)
+    return BackgroundMap(level, i0, j0, pixels[order], values[order])
 
 
 @njit(cache=True, parallel=True)
@@ -111,3 +160,67 @@ def _lens_medians(flat, pixel_index, weight, u_m, v_m, start, black, r2_max):  #
                 m += 1
         out[k] = np.median(buf[:m]) if m > 0 else np.nan
     return out
+
+
+@njit(cache=True, parallel=True)
+def _structured_background(flat, pixel_index, weight, u_m, v_m, start, lens_ij, lens_at, marked, black, u_per_px,
+                           half, reach):  # pragma: no cover - numba
+    # For every sample of a marked lens: the median, over the lenses within `reach` lattice steps,
+    # of their samples at the same place in the micro-image (the same aperture point, to the
+    # pixel). Returns (sample ids, background), marked lenses' samples in table order.
+    n_lens = start.size - 1
+    side = 2 * half + 1
+    # Each marked lens's samples, and every marked lens's neighbours', by cell (pixel offset).
+    need = np.zeros(n_lens, dtype=np.bool_)
+    n_j, n_i = lens_at.shape
+    for k in range(n_lens):
+        if marked[k]:
+            for dj in range(-reach, reach + 1):
+                for di in range(-reach, reach + 1):
+                    j, i = lens_ij[k, 1] + dj, lens_ij[k, 0] + di
+                    if 0 <= j < n_j and 0 <= i < n_i and lens_at[j, i] >= 0:
+                        need[lens_at[j, i]] = True
+    slot = np.full(n_lens, -1, dtype=np.int64)
+    n_slots = 0
+    for k in range(n_lens):
+        if need[k]:
+            slot[k] = n_slots
+            n_slots += 1
+    cells = np.full((n_slots, side * side), np.nan, dtype=np.float32)
+    for k in prange(n_lens):
+        if slot[k] < 0:
+            continue
+        for j in range(start[k], start[k + 1]):
+            cx = int(np.floor(-u_m[j] / u_per_px + 0.5)) + half
+            cy = int(np.floor(-v_m[j] / u_per_px + 0.5)) + half
+            if 0 <= cx < side and 0 <= cy < side:
+                cells[slot[k], cy * side + cx] = (np.float64(flat[pixel_index[j]]) - black) / max(
+                    np.float64(weight[j]), 1e-6)
+    # Sample ids of the marked lenses, in table order, and where each lens's begin.
+    first = np.zeros(n_lens + 1, dtype=np.int64)
+    for k in range(n_lens):
+        first[k + 1] = first[k] + (start[k + 1] - start[k] if marked[k] else 0)
+    ids = np.empty(first[n_lens], dtype=np.int64)
+    out = np.empty(first[n_lens], dtype=np.float32)
+    for k in prange(n_lens):
+        if not marked[k]:
+            continue
+        buf = np.empty((2 * reach + 1) ** 2)
+        for j in range(start[k], start[k + 1]):
+            cx = int(np.floor(-u_m[j] / u_per_px + 0.5)) + half
+            cy = int(np.floor(-v_m[j] / u_per_px + 0.5)) + half
+            m = 0
+            if 0 <= cx < side and 0 <= cy < side:
+                c = cy * side + cx
+                for dj in range(-reach, reach + 1):
+                    for di in range(-reach, reach + 1):
+                        jj, ii = lens_ij[k, 1] + dj, lens_ij[k, 0] + di
+                        if 0 <= jj < n_j and 0 <= ii < n_i and lens_at[jj, ii] >= 0:
+                            v = cells[slot[lens_at[jj, ii]], c]
+                            if not np.isnan(v):
+                                buf[m] = v
+                                m += 1
+            pos = first[k] + j - start[k]
+            ids[pos] = j
+            out[pos] = np.median(buf[:m]) if m > 0 else np.nan
+    return ids, out

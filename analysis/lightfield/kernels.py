@@ -70,9 +70,11 @@ def value_histogram(values, weights, betas, divide, lo, inv_width, hist):  # pra
 
 
 @njit(parallel=True, cache=True)
-def select_samples(image_flat, pixel_index, weight, lens, black, beta_lens, threshold, n_chunks):  # pragma: no cover
-    """Samples with ``raw - black - beta_lens[lens] * weight > threshold``, as (ids int32, values
-    float32), in table order.
+def select_samples(image_flat, pixel_index, weight, black, beta, centre, n_sigmas, noise_a, noise_b,
+                   n_chunks):  # pragma: no cover
+    """Samples with ``val = raw - black - beta * weight`` above ``centre + n_sigmas * sqrt(noise_a +
+    noise_b * beta * weight)`` (``beta`` per sample: the noise grows with the background), as (ids
+    int32, values float32), in table order.
 
     One pass over the image: chunk ``c`` writes its hits from the start of its own stretch of
     a full-length buffer (only the touched pages of which are ever backed by memory), then the
@@ -86,8 +88,9 @@ def select_samples(image_flat, pixel_index, weight, lens, black, beta_lens, thre
     for c in prange(n_chunks):
         pos = c * step
         for k in range(c * step, min(n, (c + 1) * step)):
-            val = image_flat[pixel_index[k]] - black - beta_lens[lens[k]] * weight[k]
-            if val > threshold:
+            signal = beta[k] * weight[k]
+            val = image_flat[pixel_index[k]] - black - signal
+            if val > centre + n_sigmas * math.sqrt(noise_a + noise_b * max(signal, 0.0)):
                 all_ids[pos] = k
                 all_values[pos] = val
                 pos += 1

@@ -40,13 +40,15 @@ class Samples:
         ``raw - black_level - background * weight`` of those samples.
     background : float
         Diffuse background (plasma glow) in DN of a median-weight pixel: the median of ``levels``.
-    levels : ndarray (table.n_lenses,), float64
-        The background behind each lens, subtracted from each of its samples in proportion to
-        the sample's weight, as extended light lights a micro-image like the white image does.
+    levels : ndarray (table.n_samples,), float32
+        The background behind each sample (DN of a median-weight pixel), subtracted in proportion
+        to the sample's weight, as extended light lights a micro-image like the white image does.
     sigma : float
         Robust noise of the background-subtracted samples (1.4826 * MAD), DN.
     threshold : float
-        Samples with a value ``<= threshold`` were skipped (``-inf``: none).
+        Samples with a value ``<= threshold`` were skipped (``-inf``: none), where the background
+        has its typical level; elsewhere the threshold follows their own noise, which grows with
+        the background behind them (shot noise).
     """
 
     ids: np.ndarray
@@ -83,7 +85,7 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
         Raw black level; default ``table.black_level``.
     background : float or BackgroundMap, optional
         Extended light in DN of a median-weight pixel, subtracted as ``level * weight`` from each
-        sample: one level (a diffuse glow), or a level per lens
+        sample: one level (a diffuse glow), or a level behind each sample
         (:func:`analysis.lightfield.background.estimate_background`); default: the median of
         ``(raw - black) / weight`` over all samples (robust: particles light a small fraction of
         them). Pass ``0.0`` to keep everything.
@@ -105,26 +107,69 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
     stride = _stride(table)
     values, weights = kern.gather_subsample(flat, table.pixel_index, table.weight, float(black), stride)
     if background is None:
-        hist = np.zeros(_HIST_BINS, dtype=np.int64)
-        kern.value_histogram(values, weights, np.zeros(values.size), True, _HIST_LO, 1.0 / _HIST_BIN_DN, hist)
-        background = _median_and_sigma(hist, _HIST_LO, _HIST_BIN_DN)[0]
-    levels = (background.per_lens(table) if isinstance(background, BackgroundMap)
-              else np.full(table.n_lenses, float(background)))
+        background = _level_and_noise(values, weights)[0]
+    levels = (background.per_sample(table) if isinstance(background, BackgroundMap)
+              else np.full(table.n_samples, float(background), dtype=np.float32))
+    sub_levels = levels[::stride][:values.size]
     if noise_sigmas is None:
-        threshold = -np.inf
-        sigma = float("nan")
+        threshold, sigma, noise = -np.inf, float("nan"), (0.0, 0.0)
     else:
         if noise_sigmas < 0:
             raise ParameterError(f"noise_sigmas must be >= 0 or None, got {noise_sigmas}")
         hist = np.zeros(_HIST_BINS, dtype=np.int64)
-        kern.value_histogram(values, weights, levels[table.lens[::stride][:values.size]], False, _HIST_LO,
-                             1.0 / _HIST_BIN_DN, hist)
+        kern.value_histogram(values, weights, sub_levels, False, _HIST_LO, 1.0 / _HIST_BIN_DN, hist)
         centre, sigma = _median_and_sigma(hist, _HIST_LO, _HIST_BIN_DN)
-        threshold = centre + float(noise_sigmas) * max(sigma, _MIN_SIGMA_DN)
-    ids, values = kern.select_samples(flat, table.pixel_index, table.weight, table.lens, float(black), levels,
-                                      float(threshold), numba.get_num_threads())
-    return Samples(ids=ids, values=values, background=float(np.median(levels)), sigma=float(sigma),
+        sigma = max(sigma, _MIN_SIGMA_DN)
+        noise = _noise_model(values - sub_levels * weights - centre, sub_levels * weights, sigma)
+        typical = float(np.median(sub_levels * weights))
+        threshold = centre + float(noise_sigmas) * float(np.sqrt(noise[0] + noise[1] * max(typical, 0.0)))
+    ids, values = kern.select_samples(flat, table.pixel_index, table.weight, float(black), levels,
+                                      float(centre) if noise_sigmas is not None else -np.inf,
+                                      float(noise_sigmas or 0.0), noise[0], noise[1], numba.get_num_threads())
+    return Samples(ids=ids, values=values, background=float(np.median(sub_levels)), sigma=float(sigma),
                    threshold=float(threshold), levels=levels)
+
+
+def _noise_model(residual: np.ndarray, signal: np.ndarray, sigma: float) -> tuple[float, float]:
+    """``(a, b)`` of the noise of one sample, ``sigma^2 = a + b * signal`` (shot noise grows with the
+    background's signal in DN): robust spreads of ``residual`` in bins of ``signal``, fitted by least
+    squares. Where the background is the same everywhere, ``(sigma^2, 0)``."""
+    if signal.size < 1000 or np.ptp(signal) < 4 * sigma:
+        return sigma * sigma, 0.0
+    edges = np.unique(np.quantile(signal, np.linspace(0.0, 1.0, 11)))
+    which = np.clip(np.searchsorted(edges, signal, side="right") - 1, 0, edges.size - 2)
+    s_mid, var, count = [], [], []
+    for k in range(edges.size - 1):
+        r = residual[which == k]
+        if r.size >= 50:
+            s_mid.append(float(np.median(signal[which == k])))
+            var.append((1.4826 * float(np.median(np.abs(r - np.median(r))))) ** 2)
+            count.append(r.size)
+    if len(var) < 2:
+        return sigma * sigma, 0.0
+    design = np.column_stack([np.ones(len(s_mid)), s_mid]) * np.sqrt(count)[:, None]
+    a, b = np.linalg.lstsq(design, np.asarray(var) * np.sqrt(count), rcond=None)[0]
+    b = max(float(b), 0.0)
+    return max(float(a), _MIN_SIGMA_DN ** 2), b
+
+
+def background_and_noise(image: np.ndarray, table: LightFieldTable) -> tuple[float, float]:
+    """The typical background (DN of a median-weight pixel) and the noise of one sample about it
+    (DN, robust), from a subsample of the table's samples."""
+    flat = check_image(image, table)
+    values, weights = kern.gather_subsample(flat, table.pixel_index, table.weight, float(table.black_level),
+                                            _stride(table))
+    return _level_and_noise(values, weights)
+
+
+def _level_and_noise(values: np.ndarray, weights: np.ndarray) -> tuple[float, float]:
+    hist = np.zeros(_HIST_BINS, dtype=np.int64)
+    kern.value_histogram(values, weights, np.zeros(values.size, np.float32), True, _HIST_LO, 1.0 / _HIST_BIN_DN, hist)
+    level = _median_and_sigma(hist, _HIST_LO, _HIST_BIN_DN)[0]
+    hist[:] = 0
+    kern.value_histogram(values, weights, np.full(values.size, level, np.float32), False, _HIST_LO,
+                         1.0 / _HIST_BIN_DN, hist)
+    return level, _median_and_sigma(hist, _HIST_LO, _HIST_BIN_DN)[1]
 
 
 def _stride(table: LightFieldTable) -> int:

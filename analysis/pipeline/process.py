@@ -61,7 +61,7 @@ from analysis.errors import CameraMismatchError, MetadataError
 from analysis.formats.exposure import Exposure, read_exposure
 from analysis.lightfield.background import BackgroundMap, estimate_background
 from analysis.lightfield.refocus import default_alphas, products, refocus_stack, subaperture_image
-from analysis.lightfield.samples import select_samples
+from analysis.lightfield.samples import background_and_noise, select_samples
 from analysis.lightfield.table import LightFieldTable
 
 from .candidates import locate, product_threshold
@@ -163,16 +163,17 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     if count:
         warnings.append(f"{count} green pixels are saturated; the brightest particles' brightness is clipped")
 
+    fit_table = get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
     with clock.stage("samples"):
-        background = estimate_background(exposure.image, table)
+        background = estimate_background(exposure.image, fit_table,
+                                         noise_dn=background_and_noise(exposure.image, table)[1])
         samples = select_samples(exposure.image, table, background=background, noise_sigmas=params.noise_sigmas)
         threshold = product_threshold(samples.sigma, params)
     with clock.stage("subaperture"):
         sub = subaperture_image(exposure.image, table, fraction=params.aperture_fraction,
                                 blur_sigma_px=params.blur_sigma_px, grid=grid, samples=samples, cache=cache)
-    fit_table = get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
     fitter = RayFitter(
-        exposure.image, fit_table, grid, background=background.per_lens(fit_table),
+        exposure.image, fit_table, grid, background=background.per_sample(fit_table),
         aperture_per_lens_plane=aperture_per_lens_plane(optics),
         alpha_half_range=params.refine_alpha_range,
         coarse=FitGrid(depths=params.fit_depths, lateral_pitches=COARSE_LATERAL_PITCHES,
