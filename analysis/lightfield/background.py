@@ -81,10 +81,14 @@ class BackgroundMap:
         """The background behind each sample of ``table`` (float32, ``table.n_samples``)."""
         out = self.per_lens(table).astype(np.float32)[table.lens]
         if self.pixels.size:
-            at = np.searchsorted(self.pixels, table.pixel_index)
-            found = np.flatnonzero(at < self.pixels.size)
-            found = found[self.pixels[at[found]] == table.pixel_index[found]]
-            out[found] = self.values[at[found]]
+            # Only the samples of lenses with structured light can be among the pixels.
+            lo, hi = self.pixels[0], self.pixels[-1]
+            maybe = np.flatnonzero((table.pixel_index >= lo) & (table.pixel_index <= hi))
+            at = np.searchsorted(self.pixels, table.pixel_index[maybe])
+            inside = at < self.pixels.size
+            maybe, at = maybe[inside], at[inside]
+            hit = self.pixels[at] == table.pixel_index[maybe]
+            out[maybe[hit]] = self.values[at[hit]]
         return out
 
 
@@ -150,36 +154,44 @@ def _lens_medians(flat, pixel_index, weight, u_m, v_m, start, black, r2_max):  #
     # lens writes its own entry.
     n = start.size - 1
     out = np.empty(n)
+    most = 0
+    for k in range(n):
+        most = max(most, start[k + 1] - start[k])
     for k in prange(n):
-        a, b = start[k], start[k + 1]
-        buf = np.empty(b - a)
+        buf = np.empty(most, dtype=np.float32)
         m = 0
-        for j in range(a, b):
+        for j in range(start[k], start[k + 1]):
             if u_m[j] * u_m[j] + v_m[j] * v_m[j] <= r2_max:
                 buf[m] = (np.float64(flat[pixel_index[j]]) - black) / max(np.float64(weight[j]), 1e-6)
                 m += 1
-        out[k] = np.median(buf[:m]) if m > 0 else np.nan
+        out[k] = _median_small(buf, m) if m > 0 else np.nan
     return out
 
 
 @njit(cache=True, parallel=True)
 def _structured_background(flat, pixel_index, weight, u_m, v_m, start, lens_ij, lens_at, marked, black, u_per_px,
                            half, reach):  # pragma: no cover - numba
-    # For every sample of a marked lens: the median, over the lenses within `reach` lattice steps,
-    # of their samples at the same place in the micro-image (the same aperture point, to the
-    # pixel). Returns (sample ids, background), marked lenses' samples in table order.
+    # For every sample of a marked lens: the median over the lenses within `reach` lattice steps of
+    # their samples at the same place in the micro-image (the same aperture point, to the pixel),
+    # taken as a median along j of medians along i (separable: 2 x 5 values instead of 25, and
+    # as sure to leave out a particle, which takes one lens, or two at a cell edge). Returns
+    # (sample ids, background), marked lenses' samples in table order.
     n_lens = start.size - 1
     side = 2 * half + 1
-    # Each marked lens's samples, and every marked lens's neighbours', by cell (pixel offset).
-    need = np.zeros(n_lens, dtype=np.bool_)
     n_j, n_i = lens_at.shape
+    # Lenses whose cells are needed (the marked ones' neighbourhoods), and whose row medians are.
+    need = np.zeros(n_lens, dtype=np.bool_)
+    rows = np.zeros(n_lens, dtype=np.bool_)
     for k in range(n_lens):
         if marked[k]:
             for dj in range(-reach, reach + 1):
+                j = lens_ij[k, 1] + dj
                 for di in range(-reach, reach + 1):
-                    j, i = lens_ij[k, 1] + dj, lens_ij[k, 0] + di
+                    i = lens_ij[k, 0] + di
                     if 0 <= j < n_j and 0 <= i < n_i and lens_at[j, i] >= 0:
                         need[lens_at[j, i]] = True
+                        if di == 0:
+                            rows[lens_at[j, i]] = True
     slot = np.full(n_lens, -1, dtype=np.int64)
     n_slots = 0
     for k in range(n_lens):
@@ -196,6 +208,23 @@ def _structured_background(flat, pixel_index, weight, u_m, v_m, start, lens_ij, 
             if 0 <= cx < side and 0 <= cy < side:
                 cells[slot[k], cy * side + cx] = (np.float64(flat[pixel_index[j]]) - black) / max(
                     np.float64(weight[j]), 1e-6)
+    # Medians along i, per lens and cell.
+    along_i = np.full((n_slots, side * side), np.nan, dtype=np.float32)
+    for k in prange(n_lens):
+        if not rows[k]:
+            continue
+        buf = np.empty(2 * reach + 1, dtype=np.float32)
+        for c in range(side * side):
+            m = 0
+            for di in range(-reach, reach + 1):
+                i = lens_ij[k, 0] + di
+                if 0 <= i < n_i and lens_at[lens_ij[k, 1], i] >= 0:
+                    v = cells[slot[lens_at[lens_ij[k, 1], i]], c]
+                    if not np.isnan(v):
+                        buf[m] = v
+                        m += 1
+            if m > 0:
+                along_i[slot[k], c] = _median_small(buf, m)
     # Sample ids of the marked lenses, in table order, and where each lens's begin.
     first = np.zeros(n_lens + 1, dtype=np.int64)
     for k in range(n_lens):
@@ -205,7 +234,7 @@ def _structured_background(flat, pixel_index, weight, u_m, v_m, start, lens_ij, 
     for k in prange(n_lens):
         if not marked[k]:
             continue
-        buf = np.empty((2 * reach + 1) ** 2)
+        buf = np.empty(2 * reach + 1, dtype=np.float32)
         for j in range(start[k], start[k + 1]):
             cx = int(np.floor(-u_m[j] / u_per_px + 0.5)) + half
             cy = int(np.floor(-v_m[j] / u_per_px + 0.5)) + half
@@ -213,14 +242,26 @@ def _structured_background(flat, pixel_index, weight, u_m, v_m, start, lens_ij, 
             if 0 <= cx < side and 0 <= cy < side:
                 c = cy * side + cx
                 for dj in range(-reach, reach + 1):
-                    for di in range(-reach, reach + 1):
-                        jj, ii = lens_ij[k, 1] + dj, lens_ij[k, 0] + di
-                        if 0 <= jj < n_j and 0 <= ii < n_i and lens_at[jj, ii] >= 0:
-                            v = cells[slot[lens_at[jj, ii]], c]
-                            if not np.isnan(v):
-                                buf[m] = v
-                                m += 1
+                    jj = lens_ij[k, 1] + dj
+                    if 0 <= jj < n_j and lens_at[jj, lens_ij[k, 0]] >= 0:
+                        v = along_i[slot[lens_at[jj, lens_ij[k, 0]]], c]
+                        if not np.isnan(v):
+                            buf[m] = v
+                            m += 1
             pos = first[k] + j - start[k]
             ids[pos] = j
-            out[pos] = np.median(buf[:m]) if m > 0 else np.nan
+            out[pos] = _median_small(buf, m) if m > 0 else np.nan
     return ids, out
+
+
+@njit(cache=True, inline="always")
+def _median_small(buf, m):  # pragma: no cover - numba
+    # Median of buf[:m] (tens at most) by insertion sort in place.
+    for a in range(1, m):
+        x = buf[a]
+        b = a - 1
+        while b >= 0 and buf[b] > x:
+            buf[b + 1] = buf[b]
+            b -= 1
+        buf[b + 1] = x
+    return buf[m // 2] if m % 2 else 0.5 * (buf[m // 2 - 1] + buf[m // 2])

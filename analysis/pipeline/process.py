@@ -252,7 +252,9 @@ def _survey(image: np.ndarray, table: LightFieldTable, samples, sub: np.ndarray,
     if fitter is not None and len(peaks):
         sx, sy = table.grid.to_lens_plane(peaks.x, peaks.y)
         fit = fitter.fit(sx, sy, peaks.alpha, fine=SURVEY_GRID, wide_fine=SURVEY_GRID)
-        alpha = fit.alpha[fitter.acceptable(fit)]
+        # As strict as for hidden particles: a ghost or an edge of extended light that the model
+        # half explains would stretch the range, and every slice added costs candidates to fit.
+        alpha = fit.alpha[fitter.acceptable(fit, min(fitter.max_residual, PROBE_RESIDUAL))]
     log.debug("survey: %d peaks over alpha %.4f ... %.4f, %d explained", len(peaks), survey[0], survey[-1],
               alpha.size)
     return range_of_peaks(alpha, survey, n_slices=params.n_slices)
