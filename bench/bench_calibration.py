@@ -67,7 +67,7 @@ def centre_error(fitted: Lattice, truth: Lattice) -> float:
 def measure(folder: Path, truth: Lattice) -> None:
     import numba
 
-    from analysis.calibration.lattice_fit import _demodulate, balance_channels, lens_centroids
+    from analysis.calibration.lattice_fit import balance_channels, demodulate, lens_centroids
 
     rss_imports = peak_rss_mb()
     meta = simulated_camera_metadata(size=SIZE)
@@ -84,7 +84,7 @@ def measure(folder: Path, truth: Lattice) -> None:
     t_decode = best_time(lambda: white.image(), 3)
     image = balance_channels(raw, black_level=168.0)
     t_balance = best_time(lambda: balance_channels(raw, black_level=168.0), 3)
-    t_demod = best_time(lambda: _demodulate(image, seed), 3)
+    t_demod = best_time(lambda: demodulate(image, seed), 3)
     t_centroids = best_time(lambda: lens_centroids(image, fit.lattice), 3)
 
     tracemalloc.start()

@@ -317,12 +317,12 @@ def test_cli_prints_choice_and_fit(white_folder, tmp_path, capsys):
 
 
 def test_demodulation_kernel_matches_a_direct_sum():
-    from analysis.calibration.lattice_fit import _BLOCK_PX, _STRIDE_PX, _demodulate, fundamental_frequencies
+    from analysis.calibration.lattice_fit import _BLOCK_PX, _STRIDE_PX, demodulate, fundamental_frequencies
 
     rng = np.random.default_rng(4)
     image = rng.random((160, 192)).astype(np.float32)
     seed = Lattice(origin_x=90.3, origin_y=77.9, pitch_px=9.9, rotation_rad=0.02, scale_y=1.001)
-    centres, z, grid = _demodulate(image, seed)
+    centres, z, grid = demodulate(image, seed)
     assert grid == ((160 - _BLOCK_PX) // _STRIDE_PX + 1, (192 - _BLOCK_PX) // _STRIDE_PX + 1)
     g = fundamental_frequencies(seed)
     n = np.arange(_BLOCK_PX)

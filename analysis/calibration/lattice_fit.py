@@ -143,8 +143,10 @@ def _demodulate_blocks(image, ex_re, ex_im, ey_re, ey_im, window, stride, out): 
                 out[by, bx, k, 1] = acc[k, 1]
 
 
-def _demodulate(image: np.ndarray, seed: Lattice) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
-    """Each block's complex amplitude at the seed's three fundamentals.
+def demodulate(image: np.ndarray, seed: Lattice, *, stride_px: int = _STRIDE_PX
+               ) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """Each block's complex amplitude at the seed's three fundamentals (blocks of 64 px every
+    ``stride_px``).
 
     Returns block centres (N, 2) relative to the seed origin, complex amplitudes (N, 3) and
     the block grid's shape ``(rows, columns)`` (N = rows * columns, row-major).
@@ -158,16 +160,16 @@ def _demodulate(image: np.ndarray, seed: Lattice) -> tuple[np.ndarray, np.ndarra
     arg_y = -2.0 * np.pi * np.outer(g[:, 1], ys)
     n = np.arange(_BLOCK_PX)
     window = np.sin(np.pi * (n + 0.5) / _BLOCK_PX) ** 2
-    nby = (h - _BLOCK_PX) // _STRIDE_PX + 1
-    nbx = (w - _BLOCK_PX) // _STRIDE_PX + 1
+    nby = (h - _BLOCK_PX) // stride_px + 1
+    nbx = (w - _BLOCK_PX) // stride_px + 1
     out = np.empty((nby, nbx, 3, 2))
     _demodulate_blocks(image, np.cos(arg_x), np.sin(arg_x), np.cos(arg_y), np.sin(arg_y),
-                       window, _STRIDE_PX, out)
+                       window, stride_px, out)
     z = (out[..., 0] + 1j * out[..., 1]).reshape(-1, 3)
     by, bx = np.meshgrid(np.arange(nby), np.arange(nbx), indexing="ij")
     # The symmetric window's centroid is the block's middle, c0 + B/2 in pixel coordinates.
-    cx = bx.ravel() * _STRIDE_PX + _BLOCK_PX / 2 - seed.origin_x
-    cy = by.ravel() * _STRIDE_PX + _BLOCK_PX / 2 - seed.origin_y
+    cx = bx.ravel() * stride_px + _BLOCK_PX / 2 - seed.origin_x
+    cy = by.ravel() * stride_px + _BLOCK_PX / 2 - seed.origin_y
     return np.stack([cx, cy], axis=1), z, (nby, nbx)
 
 
@@ -270,7 +272,7 @@ def fit_lattice(white: np.ndarray, seed: Lattice, *, black_level: float = 168.0,
     if not (3.0 <= seed.pitch_px <= _BLOCK_PX / 4):
         raise CalibrationError(f"seed pitch {seed.pitch_px:.3f} px is outside the supported 3..16 px")
     image = balance_channels(white, black_level=black_level)
-    centres, z, grid = _demodulate(image, seed)
+    centres, z, grid = demodulate(image, seed)
     phases, amps = np.angle(z), np.abs(z)
     g_seed = fundamental_frequencies(seed)
 

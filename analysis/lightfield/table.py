@@ -15,6 +15,7 @@ light by summed weight, so ``cos^4`` is counted exactly once either way.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import uuid
 from dataclasses import dataclass, field
@@ -23,6 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numba import njit, prange
 
 from analysis.formats.atomic_write import atomic_path
 from analysis.camera.model import CameraModel
@@ -309,6 +311,52 @@ def build_table_from_model(model: CameraModel, devignetting: np.ndarray | None =
         lens_ij=lens_ij, lens_xy_m=lens_xy, basis_m=np.asarray(basis_m, dtype=np.float64),
         aperture_radius_m=float(radius * k_ap), micro_image_radius_px=float(radius),
         rim_px=float(rim_px), black_level=float(model.black_level), grid=grid)
+
+
+def shifted_table(table: LightFieldTable, devignetting: np.ndarray, shift_px: np.ndarray, *,
+                  m_per_px: float) -> LightFieldTable:
+    """The table of an exposure whose micro-images moved by ``shift_px`` (per lens, (L, 2), sensor
+    pixels) from where the white image had them: the lattice drifted (thermal, mechanical).
+
+    The same pixels, each behind the same lens, now sees the aperture point ``shift * u_per_px``
+    further on; lens centres move by ``shift * m_per_px`` on the lens plane (``pixel pitch /
+    projection factor``); the weights are the white image read where each pixel now sits relative to
+    its micro-image (bilinear, at ``pixel - shift``). For shifts well below a pixel: the pixels
+    that a larger shift would bring into or out of a micro-image are not added or dropped.
+    """
+    shift_px = np.asarray(shift_px, dtype=np.float64)
+    u_per_px = table.aperture_radius_m / table.micro_image_radius_px
+    du = (shift_px * u_per_px).astype(np.float32)
+    devignetting = np.asarray(devignetting)
+    # The table's weights are the white image over one normalising constant.
+    probe = table.pixel_index[:: max(1, table.n_samples // 10_000)]
+    probe_w = table.weight[:: max(1, table.n_samples // 10_000)]
+    norm = float(np.median(devignetting.reshape(-1)[probe] / np.maximum(probe_w, 1e-6)))
+    weight = _resampled(devignetting, table.pixel_index, table.lens, shift_px, table.width, 1.0 / norm)
+    return dataclasses.replace(
+        table, u_m=table.u_m + du[table.lens, 0], v_m=table.v_m + du[table.lens, 1], weight=weight,
+        lens_xy_m=table.lens_xy_m + shift_px * m_per_px, uid=uuid.uuid4().hex)
+
+
+@njit(cache=True, parallel=True)
+def _resampled(devignetting, pixel_index, lens, shift_px, width, scale):  # pragma: no cover - numba
+    # The white image at (pixel centre - shift of its lens), bilinear, times scale; float32.
+    n = pixel_index.size
+    h = devignetting.shape[0]
+    out = np.empty(n, dtype=np.float32)
+    for k in prange(n):
+        row = pixel_index[k] // width
+        col = pixel_index[k] - row * width
+        x = col - shift_px[lens[k], 0]
+        y = row - shift_px[lens[k], 1]
+        x0 = min(max(int(np.floor(x)), 0), width - 2)
+        y0 = min(max(int(np.floor(y)), 0), h - 2)
+        fx = min(max(x - x0, 0.0), 1.0)
+        fy = min(max(y - y0, 0.0), 1.0)
+        v = ((1 - fx) * (1 - fy) * devignetting[y0, x0] + fx * (1 - fy) * devignetting[y0, x0 + 1]
+             + (1 - fx) * fy * devignetting[y0 + 1, x0] + fx * fy * devignetting[y0 + 1, x0 + 1])
+        out[k] = v * scale
+    return out
 
 
 def default_grid(lens_xy_m: np.ndarray, basis_m: np.ndarray, *, oversample: float = 1.0) -> ImageGrid:

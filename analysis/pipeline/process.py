@@ -46,6 +46,7 @@ import numpy as np
 
 from analysis.cache import Cache
 from analysis.calibration.calibrate import Calibration
+from analysis.calibration.drift import LatticeDrift, block_phases, estimate_drift
 from analysis.camera.coordinates import Calibration3D, ThinLensCalibration, to_physical
 from analysis.camera.image_grid import ImageGrid
 from analysis.camera.model import CameraModel
@@ -69,7 +70,7 @@ from .depth_range import SURVEY_GRID, edge_maxima, lattice_step, range_of_peaks,
 from .params import PipelineParams
 from .result import Result
 from .stages import Progress, StageClock
-from .tables import FIT_TABLE_RIM_PX, get_table, normalisation_keys, save_normalisations
+from .tables import drifted_fit_table, get_table, normalisation_keys, save_normalisations
 
 log = logging.getLogger(__name__)
 
@@ -133,6 +134,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     if coordinates is None:
         coordinates = params.user_calibration() or ThinLensCalibration(optics)
 
+    drift = None
     with clock.stage("table"):
         table = get_table(calibration, cache, grid_oversample=params.grid_oversample)
     norms_before = normalisation_keys(table, cache)
@@ -153,7 +155,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                       exposure_name=exposure.name, exposure_sha1=exposure.sha1, serial=exposure.serial,
                       white_sha1=calibration.white_sha1, curves=curves,
                       stack=stack if keep_stack else None, subaperture=sub if keep_stack else None,
-                      threshold=threshold, rejected=dropped)
+                      threshold=threshold, rejected=dropped, drift=None if drift is None else drift.to_dict())
 
     fraction, count = saturated_fraction(exposure.image, model.white_level)
     if fraction > SATURATED_FRAME_FRACTION:
@@ -163,10 +165,12 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     if count:
         warnings.append(f"{count} green pixels are saturated; the brightest particles' brightness is clipped")
 
-    fit_table = get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
+    with clock.stage("drift"):
+        noise_dn = background_and_noise(exposure.image, table)[1]
+        drift = _lattice_drift(exposure, calibration, cache, noise_dn)
+        fit_table = drifted_fit_table(calibration, cache, drift)
     with clock.stage("samples"):
-        background = estimate_background(exposure.image, fit_table,
-                                         noise_dn=background_and_noise(exposure.image, table)[1])
+        background = estimate_background(exposure.image, fit_table, noise_dn=noise_dn)
         samples = select_samples(exposure.image, table, background=background, noise_sigmas=params.noise_sigmas)
         threshold = product_threshold(samples.sigma, params)
     with clock.stage("subaperture"):
@@ -235,6 +239,16 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         else:
             warnings.append("no particles found above the noise; check the exposure and the threshold")
     return finish(peaks, tracks, stack, sub, threshold, fit, quality)
+
+
+def _lattice_drift(exposure: Exposure, calibration: Calibration, cache: Cache, noise_dn: float) -> LatticeDrift | None:
+    """How far the exposure's micro-images moved from the white image's (None: too little light to
+    tell; the white image's lattice then stands)."""
+    lattice = calibration.model.lattice
+    white = cache.get_or_make(("white_phases", calibration.white_sha1),
+                              lambda: block_phases(calibration.devignetting, lattice, black_level=0.0))
+    return estimate_drift(exposure.image, lattice, white, black_level=calibration.model.black_level,
+                          noise_dn=noise_dn)
 
 
 def _survey(image: np.ndarray, table: LightFieldTable, samples, sub: np.ndarray, survey: np.ndarray,

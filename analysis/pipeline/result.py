@@ -57,6 +57,9 @@ class Result:
     rejected : dict of str to ndarray
         The candidates that did not become particles (``x, y, alpha, X, Y, Z, intensity,
         residual, reason``; the reasons: :data:`analysis.detection.rejections.REASONS`).
+    drift : dict or None
+        How far the micro-lens lattice had moved since the white image, as the exposure showed it
+        (:class:`analysis.calibration.drift.LatticeDrift`); None where it showed too little.
     """
 
     particles: dict[str, np.ndarray]
@@ -75,6 +78,7 @@ class Result:
     subaperture: np.ndarray | None = None
     threshold: float = math.nan
     rejected: dict[str, np.ndarray] = field(default_factory=dict)
+    drift: dict | None = None
 
     def __len__(self) -> int:
         return int(self.particles["particle"].size)
@@ -104,7 +108,7 @@ class Result:
                 "warnings": self.warnings, "exposure_name": self.exposure_name,
                 "exposure_sha1": self.exposure_sha1, "serial": self.serial, "white_sha1": self.white_sha1,
                 "threshold": self.threshold, "alphas": self.alphas.tolist(),
-                "grid": dataclasses.asdict(self.grid)}
+                "grid": dataclasses.asdict(self.grid), "drift": self.drift}
 
 
 def write_results_hdf5(results: Sequence[Result], path: str | Path) -> Path:

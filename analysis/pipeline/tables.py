@@ -12,10 +12,13 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+import numpy as np
+
 from analysis.cache import Cache
 from analysis.calibration.calibrate import Calibration
+from analysis.calibration.drift import LatticeDrift
 from analysis.lightfield.table import (NORMALISATION, TABLE_FORMAT_VERSION, LightFieldTable, build_table, load_table,
-                                       save_table)
+                                       save_table, shifted_table)
 
 log = logging.getLogger(__name__)
 
@@ -81,3 +84,33 @@ def _save_quietly(table: LightFieldTable, path: Path, cache: Cache) -> None:
         save_table(table, path, cache=cache)
     except OSError as exc:
         log.warning("could not write look-up table cache %s (%s); continuing without it", path, exc)
+
+
+#: A drift is applied in steps of this (pixels; radians for the rotation, which moves the sensor's
+#: corners by about 2300 times as much), so that exposures of one run, whose lattice drifts slowly,
+#: share their drifted table.
+DRIFT_STEP_PX = 0.01
+DRIFT_STEP_RAD = 4e-6
+
+
+def drifted_fit_table(calibration: Calibration, cache: Cache, drift: LatticeDrift | None) -> LightFieldTable:
+    """The depth fit's table as an exposure with this lattice drift sees it (the calibration's own
+    when there is none, or less than a step): :func:`analysis.lightfield.table.shifted_table`."""
+    base = get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
+    if drift is None:
+        return base
+    q = (round(drift.shift_px[0] / DRIFT_STEP_PX), round(drift.shift_px[1] / DRIFT_STEP_PX),
+         round(drift.rotation_rad / DRIFT_STEP_RAD))
+    if q == (0, 0, 0):
+        return base
+    lattice = calibration.model.lattice
+    steps = LatticeDrift((q[0] * DRIFT_STEP_PX, q[1] * DRIFT_STEP_PX), q[2] * DRIFT_STEP_RAD, drift.sigma_px,
+                         drift.n_blocks)
+
+    def make() -> LightFieldTable:
+        cx, cy = lattice.centre(base.lens_ij[:, 0], base.lens_ij[:, 1])
+        shift = np.column_stack(steps.displacement(cx, cy, lattice))
+        optics = calibration.model.optics
+        return shifted_table(base, calibration.devignetting, shift,
+                             m_per_px=optics.pixel_pitch_m / optics.projection_factor)
+    return cache.get_or_make(("drifted_table", base.uid, q), make)
