@@ -17,7 +17,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from analysis.simulation.render import write_scenario
+from analysis.simulation.scenario_files import write_scenario
 from service_helpers import SIZE_PX, assert_problem, simulate, variant_lfp, wait_for_job
 from service_server import ServiceProcess
 

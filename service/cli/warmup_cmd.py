@@ -64,7 +64,7 @@ def warm_up_kernels(say: Callable[[str], None]) -> float:
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="plenodust-warm-up-") as tmp:
         with still_working(say, "compiling the simulator's kernels (rendering a small cluster)"):
-            from analysis.simulation.render import write_scenario
+            from analysis.simulation.scenario_files import write_scenario
 
             files = write_scenario(Path(tmp) / "sim", "ball", 1, count=1, size=WARM_UP_SIZE_PX,
                                    progress=lambda line: None)
