@@ -166,7 +166,7 @@ def test_refit_with_neighbours_light_taken_off_keeps_isolated_particles(scene):
     assert np.median(gone.intensity) < 0.3 * np.median(first.intensity)
 
 
-def _reference_costs(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, grid, cells):
+def _reference_costs(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, cells):
     n_c, half_lat, n_lat, sub = grid.n_depths, grid.half_lateral, grid.n_lateral, grid.footprint
     pitch, r_ap2 = cells.pitch, cells.r_ap2
     costs = []
@@ -213,7 +213,8 @@ def test_grid_costs_match_the_model_one_candidate_at_a_time(blur, points):
     values -= np.median(values)  # the background: most gathered samples see none of the particle
     uv = idx.uv(g.ids)
     grid = GridPass(4, 0.3 * idx.pitch_m, 3, pixel_footprint(points, 0.5) * idx.u_per_px, 1.0)
-    args = (g.centres, g.sample_ptr, uv, values, sx0, sy0, c_lo, c_hi, grid, idx.cells(aperture_per_lens_plane(optics)))
+    args = (g.centres, g.sample_ptr, uv, values, np.zeros(values.size, np.bool_), sx0, sy0, c_lo, c_hi, grid,
+            idx.cells(aperture_per_lens_plane(optics)))
     n = 4 * 3 * 3
     _, costs, _, _, _ = grid_costs(*args)
     assert costs.size == n
@@ -332,3 +333,34 @@ def test_depth_scale_of_blurred_particles_is_unbiased():
     ratio = (1.0 - 1.0 / fit.alpha) / c
     assert np.all(np.abs(ratio - 1.0) < 0.03), ratio  # single fits scatter with the grid's depth step
     assert abs(np.mean(ratio) - 1.0) < 0.005, ratio  # evenly spaced pixel points: 0.011
+
+
+@pytest.mark.parametrize("blur", [1.3, 2.5])
+def test_a_saturated_particle_keeps_its_depth(blur):
+    """Saturated samples are lower bounds (censored), not values: a particle bright enough to clip
+    the ADC is fitted close to the depth an unsaturated one gets, and closer than when its clipped
+    samples are taken at their word."""
+    from analysis.depth.refine import FINE_GRID
+
+    model = CameraModel.from_metadata(simulated_camera_metadata(size=480))
+    optics = model.optics
+    table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
+    pitch = float(np.hypot(*table.basis_m[:, 0]))
+    gx, gy = np.meshgrid(np.arange(-12.0, 13.0, 12.0), np.arange(-12.0, 13.0, 12.0))
+    s_hat = np.column_stack([gx.ravel(), gy.ravel()]) * pitch + np.linspace(0.0, 0.4, 9)[:, None] * pitch
+    c = blur * np.tile([1.0, -1.0, 1.0], 3)[:9] * optics.lens_pitch_m / optics.aperture_diameter_m
+    z = np.asarray(optics.z_of_alpha(1.0 / (1.0 - c)))
+
+    def depth_error(brightness: float, saturation: float) -> float:
+        particles = Particles(s_hat[:, 0] * z / optics.exit_pupil_m, s_hat[:, 1] * z / optics.exit_pupil_m, z,
+                              np.full(9, brightness))
+        image = render_exposure(model, particles, seed=11)
+        assert (np.count_nonzero(image >= 4095) > 100) == (brightness > 5000)
+        fit = fit_rays(image, table, s_hat[:, 0] + 0.1 * pitch, s_hat[:, 1], 1.0 / (1.0 - c) + 0.0008,
+                       background=float(np.median(image) - model.black_level),
+                       aperture_per_lens_plane=aperture_per_lens_plane(optics), coarse=PIPELINE_COARSE,
+                       fine=FINE_GRID, saturation=saturation)
+        return float(np.sqrt(np.mean(((1.0 - 1.0 / fit.alpha - c) / c) ** 2)))  # relative error of the blur
+
+    dim, censored, as_values = depth_error(1800.0, 4095.0), depth_error(14000.0, 4095.0), depth_error(14000.0, 1e9)
+    assert censored < 2.0 * dim + 0.005 and censored < 0.8 * as_values, (dim, censored, as_values)

@@ -253,7 +253,8 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
              alpha_half_range: float = 0.004, coarse: FitGrid = COARSE, fine: FitGrid = FINE,
              reach_pitches: float = 1.2, blur_px: float = 0.5, subtract: np.ndarray | None = None,
              own: RayFit | None = None, prior_alpha: np.ndarray | None = None,
-             prior_sigma: np.ndarray | None = None, prior_outlier: float = 0.05, cache: Cache | None = None) -> RayFit:
+             prior_sigma: np.ndarray | None = None, prior_outlier: float = 0.05, saturation: float = 4095.0,
+             cache: Cache | None = None) -> RayFit:
     """Refine position and depth of particles by fitting the forward model to the raw samples.
 
     Two passes (:class:`FitGrid`): a coarse grid of depths over ``alpha0 +- alpha_half_range`` and
@@ -305,6 +306,10 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
         Earlier fits of these same particles (row for row), whose light ``subtract`` includes: each
         particle's own share is added back, so it is refitted to its pixels with only its
         neighbours' light taken off (deblending a crowd).
+    saturation : float
+        Raw value at which the ADC saturates: samples that read it are censored (their true value
+        is at least that: they count only where the model predicts less, and do not set the
+        intensity).
     cache : Cache, optional
         Keeps the table's lens index between calls.
 
@@ -327,10 +332,11 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
     g = idx.gather(sx0, sy0, reach)
     values = np.empty(g.ids.size)
     uv = np.empty((g.ids.size, 2))
+    censored = np.empty(g.ids.size, dtype=np.bool_)
     render_kernels.sample_values(flat, table.pixel_index, table.weight, table.u_m, table.v_m, g.ids,
-                                 float(table.black_level), background_per_sample(table, background),
+                                 float(table.black_level), float(saturation), background_per_sample(table, background),
                                  np.zeros(0, np.float32) if subtract is None else subtract, subtract is not None,
-                                 values, uv)
+                                 values, uv, censored)
     if own is not None:
         if len(own) != n:
             raise ValueError(f"own holds {len(own)} fits for {n} particles")
@@ -342,7 +348,7 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
     prior_floor = np.where(prior_k > 0, prior_outlier / max(1.0 - prior_outlier, 1e-12) * np.sqrt(2 * np.pi)
                            * sigma_c / np.abs(c_hi - c_lo), 0.0)
     out = np.empty((n, 7))
-    kern.fit_all(g.centres, g.sample_ptr, g.lens_ptr, uv, values, sx0, sy0, c_lo, c_hi,
+    kern.fit_all(g.centres, g.sample_ptr, g.lens_ptr, uv, values, censored, sx0, sy0, c_lo, c_hi,
                  idx.cells(aperture_per_lens_plane), _grid_pass(coarse, idx, blur_px), _grid_pass(fine, idx, blur_px),
                  kern.PriorTerms(c_prior, prior_k, prior_floor), out,
                  *_balanced_slots(g.sample_ptr[g.lens_ptr[1:]] - g.sample_ptr[g.lens_ptr[:-1]],

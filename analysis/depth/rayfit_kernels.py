@@ -49,8 +49,8 @@ class PriorTerms(NamedTuple):
 
 
 @numba.njit(cache=True, parallel=True, fastmath=FASTMATH)
-def fit_all(centres, sample_ptr, lens_ptr, uv, values, sx0, sy0, c_lo, c_hi, cells, coarse, fine, prior, out,
-            order, slot_ptr):
+def fit_all(centres, sample_ptr, lens_ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, cells, coarse, fine, prior,
+            out, order, slot_ptr):
     # Per particle, a coarse grid search over [c_lo, c_hi] then a fine one around its result;
     # `coarse` and `fine` are GridPass tuples, `prior` a PriorTerms tuple (one entry per particle).
     # One slot of particles (order[slot_ptr[s]:slot_ptr[s + 1]]) per prange iteration, one slot per
@@ -64,23 +64,24 @@ def fit_all(centres, sample_ptr, lens_ptr, uv, values, sx0, sy0, c_lo, c_hi, cel
             cen = centres[la:lb]
             ptr = sample_ptr[la:lb + 1]
             first = np.empty(7)
-            _fit_one(cen, ptr, uv, values, sx0[p], sy0[p], c_lo[p], c_hi[p], coarse, cells, c_prior[p],
+            _fit_one(cen, ptr, uv, values, censored, sx0[p], sy0[p], c_lo[p], c_hi[p], coarse, cells, c_prior[p],
                      prior_k[p], prior_floor[p], first)
             if first[3] <= 0.0:
                 out[p, :] = first
                 continue
             step = (c_hi[p] - c_lo[p]) / max(n_c - 1, 1)
             half_c = max(2.0 * first[6], 1.5 * step)
-            _fit_one(cen, ptr, uv, values, first[0], first[1], first[2] - half_c, first[2] + half_c, fine, cells,
-                     c_prior[p], prior_k[p], prior_floor[p], out[p])
+            _fit_one(cen, ptr, uv, values, censored, first[0], first[1], first[2] - half_c, first[2] + half_c, fine,
+                     cells, c_prior[p], prior_k[p], prior_floor[p], out[p])
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def _fit_one(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, grid, cells, c_prior, prior_k, prior_floor, out):
+def _fit_one(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, cells, c_prior, prior_k, prior_floor,
+             out):
     """Grid of (c, s) candidates over the lenses ``centres`` (samples ``ptr[l]:ptr[l+1]`` each);
     writes mean s_x, s_y, c, best I0, lit samples, residual, std of c."""
     temperature = grid.temperature
-    m, costs, cand, inten, lit = grid_costs(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, grid, cells)
+    m, costs, cand, inten, lit = grid_costs(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, cells)
     n_cand = costs.size
     best = 0
     for k in range(n_cand):
@@ -122,7 +123,7 @@ def _fit_one(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, grid, cells, c_prio
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def grid_costs(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, grid, cells):
+def grid_costs(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, cells):
     """Cost, best I0 and lit samples of each candidate ``(s_x, s_y, c)`` of ``grid`` (a
     :class:`GridPass`: depths over ``[c_lo, c_hi]``, positions about ``(sx0, sy0)``) in its order
     (depth, then y, then x): returns the number of samples and the arrays ``costs``, ``cand``
@@ -149,9 +150,24 @@ def grid_costs(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, grid, cells):
     lit = np.empty(n_cand)
     j_first = ptr[0] if n_lens > 0 else 0
     m = ptr[n_lens] - j_first if n_lens > 0 else 0
+    # Saturated samples are censored: their true value is at least the one read, so they weigh only
+    # where the model predicts less (a lower bound), and not in the least-squares intensity.
     sum_v2 = 0.0
+    n_cens = 0
     for j in range(j_first, j_first + m):
-        sum_v2 += values[j] * values[j]
+        if censored[j]:
+            n_cens += 1
+        else:
+            sum_v2 += values[j] * values[j]
+    cens_slot = np.full(m if n_cens > 0 else 0, -1, dtype=np.int64)
+    cens_v = np.empty(n_cens)
+    c_k = 0
+    for j in range(j_first, j_first + m):
+        if censored[j]:
+            cens_slot[j - j_first] = c_k
+            cens_v[c_k] = values[j]
+            c_k += 1
+    cens_f = np.zeros((n_cens, n_pos))
     r_ap = np.sqrt(r_ap2)
     # Circumradius of a lens cell (a regular hexagon's is pitch / sqrt(3)), and the farthest
     # point of a pixel's footprint; samples within `inner` of the aperture centre see no crosstalk.
@@ -211,6 +227,7 @@ def grid_costs(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, grid, cells):
         s_vf[:] = 0.0
         s_ff[:] = 0.0
         s_f[:] = 0.0
+        cens_f[:, :] = 0.0
         for lens in range(n_lens):
             cx = centres[lens, 0]
             cy = centres[lens, 1]
@@ -306,6 +323,11 @@ def grid_costs(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, grid, cells):
                                     break
                         frac[q] = f
                 v = values[j]
+                if n_cens > 0 and censored[j]:
+                    for q in range(n_pos):
+                        cens_f[cens_slot[i], q] = frac[q]
+                        s_f[q] += frac[q]
+                    continue
                 for q in range(n_pos):
                     f = frac[q]
                     if f > 0.0:
@@ -319,6 +341,8 @@ def grid_costs(centres, ptr, uv, values, sx0, sy0, c_lo, c_hi, grid, cells):
             else:
                 costs[k] = sum_v2
                 inten[k] = 0.0
+            if n_cens > 0:
+                costs[k], inten[k] = _with_censored(costs[k], inten[k], cens_v, cens_f[:, q])
             lit[k] = s_f[q]
             cand[k, 0] = sx0 + off_x[q]
             cand[k, 1] = sy0 + off_y[q]
@@ -487,3 +511,21 @@ def _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, cnt):
         b2 = base[i, 2]
         for q in range(n_pos):
             cnt[q] += 1.0 if (abs(b0 + d0[q]) <= h0) & (abs(b1 + d1[q]) <= h1) & (abs(b2 + d2[q]) <= h2) else 0.0
+
+
+@numba.njit(cache=True, fastmath=FASTMATH)
+def _with_censored(cost, inten, cens_v, cens_f):
+    """A candidate's cost and intensity with the censored samples added: the least-squares intensity
+    of the others (or, where only censored samples are lit, the least that reaches every bound), and
+    ``max(0, v_c - I f_c)^2`` for each bound the prediction falls short of. (Refitting the
+    intensity with the bounds it falls short of fitted simulated saturated particles' depths no
+    better.)"""
+    if inten <= 0.0:
+        for c in range(cens_v.size):
+            if cens_f[c] > 0.0:
+                inten = max(inten, cens_v[c] / cens_f[c])
+    for c in range(cens_v.size):
+        short = cens_v[c] - inten * cens_f[c]
+        if short > 0.0:
+            cost += short * short
+    return cost, inten

@@ -109,6 +109,8 @@ class RayFitter:
         Where the table's lens index is kept between calls.
     rejected : Rejections or None
         Where the stages record the candidates they drop, with the reason.
+    saturation : float
+        Raw value at which the sensor saturates (the model's white level): such samples are censored.
     """
 
     image: np.ndarray
@@ -124,6 +126,7 @@ class RayFitter:
     merge_alpha: float
     cache: Cache | None = None
     rejected: Rejections | None = None
+    saturation: float = 4095.0
 
     @property
     def pitch_m(self) -> float:
@@ -144,7 +147,8 @@ class RayFitter:
         particles per call, to bound memory.
         """
         settings = dict(background=self.background, aperture_per_lens_plane=self.aperture_per_lens_plane,
-                        alpha_half_range=self.alpha_half_range, coarse=self.coarse, cache=self.cache)
+                        alpha_half_range=self.alpha_half_range, coarse=self.coarse, cache=self.cache,
+                        saturation=self.saturation)
         settings.update(options)
         if wide_fine is None:
             wide_fine = WIDE_FINE_GRID if fine is None else fine

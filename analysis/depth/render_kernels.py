@@ -14,8 +14,8 @@ from .rayfit_kernels import FASTMATH
 
 
 @numba.njit(cache=True, parallel=True)
-def sample_values(flat, pixel_index, weight, u_m, v_m, ids, black_level, background, subtract, use_subtract,
-                  values, uv):
+def sample_values(flat, pixel_index, weight, u_m, v_m, ids, black_level, saturation, background, subtract,
+                  use_subtract, values, uv, censored):
     # The devignetted value above the background behind it (`background` per sample, or one value
     # for all when it holds one; weights floored at 1e-6, as
     # TableIndex.weight floors them) and the aperture point of each gathered sample; each
@@ -23,7 +23,9 @@ def sample_values(flat, pixel_index, weight, u_m, v_m, ids, black_level, backgro
     for k in prange(ids.size):
         j = ids[k]
         bg = background[j] if background.size > 1 else background[0]
-        v = (np.float64(flat[pixel_index[j]]) - black_level) / max(np.float64(weight[j]), 1e-6) - bg
+        raw = np.float64(flat[pixel_index[j]])
+        censored[k] = raw >= saturation  # the ADC's top: the true value is at least this
+        v = (raw - black_level) / max(np.float64(weight[j]), 1e-6) - bg
         if use_subtract:
             v -= np.float64(subtract[j])
         values[k] = v

@@ -35,7 +35,7 @@ if TYPE_CHECKING:
     from analysis.cache import Cache
 
 # Bump when the saved layout changes, so stale caches are rebuilt, not misread.
-TABLE_FORMAT_VERSION = 5
+TABLE_FORMAT_VERSION = 6
 
 # Empty lens sites kept around the lattice so that shifted samples near the edge still land
 # on the site grid (the simulated f/2 camera shifts by up to about 4 lenses over 0.987 ... 1.013).
