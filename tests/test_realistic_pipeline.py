@@ -1,0 +1,87 @@
+"""The pipeline on exposures with what a real camera in a real chamber adds (small sensor crops)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from analysis.cache import Cache
+from analysis.calibration.calibrate import calibrate
+from analysis.camera.model import CameraModel
+from analysis.formats.exposure import Exposure
+from analysis.formats.whites import WhiteImage
+from analysis.pipeline.params import PipelineParams
+from analysis.pipeline.process import process
+from analysis.simulation.camera import simulated_camera_metadata, simulated_private_metadata
+from analysis.simulation.chamber import ChamberLight, ExtendedSource
+from analysis.simulation.render import in_view, particle_truth, render_exposure, render_white_image
+from analysis.simulation.scenarios import Particles, make_scenario
+from analysis.simulation.scoring import mean_nn_distance, score
+
+SIZE = 1024
+
+
+def _process(particles: Particles, *, chamber: ChamberLight | None = None, params: PipelineParams | None = None,
+             seed: int = 1):
+    """Render ``particles`` (and ``chamber``'s light) on a centred crop, calibrate from its white
+    image, process with the defaults; the truth of the particles in view."""
+    meta = simulated_camera_metadata(size=SIZE)
+    model = CameraModel.from_metadata(meta)
+    private = simulated_private_metadata()
+    white = WhiteImage.from_image("MOD_0001", render_white_image(model, seed=seed + 100), meta, private)
+    calibration = calibrate(white)
+    image = render_exposure(model, particles, seed=seed, background_dn=40.0, chamber=chamber)
+    result = process(Exposure(image, meta, private), calibration, params, cache=Cache())
+    truth = particle_truth(model, particles)
+    shown = in_view(model, truth)
+    columns = {"X": particles.x_mm[shown], "Y": particles.y_mm[shown], "Z": particles.z_mm[shown],
+               "alpha": truth.alpha[shown], "x": truth.x_px[shown], "y": truth.y_px[shown],
+               "blur_pitches": truth.blur_pitches[shown]}
+    return result, columns, model
+
+
+def _all_real(result, particles: Particles, *, within_mm: float = 0.5) -> bool:
+    """Whether every particle found lies within ``within_mm`` of one of ``particles``."""
+    true = np.column_stack([particles.x_mm, particles.y_mm, particles.z_mm])
+    found = np.column_stack([result.particles["X"], result.particles["Y"], result.particles["Z"]])
+    return all(np.min(np.linalg.norm(true - f, axis=1)) < within_mm for f in found)
+
+
+def test_a_reflected_laser_band_yields_no_particle_and_hides_none():
+    """A band of laser light reflected by an electrode 6 mm behind focus, out of focus, across the
+    layer's image: no particle on it, the particles in front of it still found."""
+    layer = make_scenario("tilted-layer", 3).particles
+    band = ExtendedSource(kind="band", z_mm=66.0, x_mm=0.0, y_mm=0.4, sigma_mm=0.2, level_dn=2000.0,
+                          angle_rad=0.02, amplitude=0.25, period_mm=2.5)
+    result, truth, model = _process(layer, chamber=ChamberLight(sources=(band,)))
+    # The band does reach this crop, far above the glow.
+    cx, cy, reach = band.footprint_px(model)
+    assert 0 < cy < SIZE and truth["X"].size >= 6
+    s = score(result.particles, truth, nn_mm=mean_nn_distance(truth["X"], truth["Y"], truth["Z"]))
+    assert s.recall >= 0.95, s
+    # Every particle found is a particle of the layer (some partly off the crop: not in the truth).
+    assert _all_real(result, layer)
+    assert np.all(result.particles["leftover"] < 0.5)
+
+
+def test_particles_beyond_the_papers_alpha_range_are_found_by_default():
+    """A 7 mm ball at focus reaches beyond 0.987 ... 1.013 in alpha: found by default (the range comes
+    from the exposure), lost and reported when the user fixes that range."""
+    ball = make_scenario("ball", 2).particles
+    scale = 7.0 / 4.0  # the scenario's 4 mm ball, grown to 7 mm about its centre
+    centre = np.array([ball.x_mm.mean(), ball.y_mm.mean(), ball.z_mm.mean()])
+    grown = Particles(centre[0] + (ball.x_mm - centre[0]) * scale, centre[1] + (ball.y_mm - centre[1]) * scale,
+                      centre[2] + (ball.z_mm - centre[2]) * scale, ball.brightness_dn)
+    result, truth, _ = _process(grown)
+    outside = (truth["alpha"] < 0.987) | (truth["alpha"] > 1.013)
+    assert outside.sum() >= 3
+    nn = mean_nn_distance(truth["X"], truth["Y"], truth["Z"])
+    s = score(result.particles, truth, nn_mm=nn)
+    assert s.recall >= 0.95 and _all_real(result, grown), s
+    # Each particle outside the old range has a found particle within 0.5 mm.
+    found = np.column_stack([result.particles["X"], result.particles["Y"], result.particles["Z"]])
+    for x, y, z in zip(truth["X"][outside], truth["Y"][outside], truth["Z"][outside]):
+        assert np.min(np.linalg.norm(found - [x, y, z], axis=1)) < 0.5
+    fixed, _, _ = _process(grown, params=PipelineParams(alpha_min=0.987, alpha_max=1.013))
+    assert len(fixed) < len(result)
+    assert np.count_nonzero(fixed.rejected["reason"] == "edge_of_range") >= 1
