@@ -34,8 +34,7 @@ def _case(folder, realism):
 def test_drift_is_found_from_the_exposure_within_two_hundredths_of_a_pixel(tmp_path, shift, rotation):
     exposure, calibration, _, _ = _case(tmp_path, Realism(lattice_drift_px=shift, lattice_drift_rad=rotation))
     lattice = calibration.model.lattice
-    drift = estimate_drift(exposure.image, lattice, block_phases(calibration.devignetting, lattice, black_level=0.0),
-                           black_level=calibration.model.black_level, noise_dn=3.0)
+    drift = estimate_drift(exposure.image, lattice, block_phases(calibration.devignetting, lattice), noise_dn=3.0)
     assert drift is not None and drift.n_blocks >= 20
     # Over the crop, the displacement of every micro-image within 0.02 px of the truth.
     corners = np.array([[0, 0], [SIZE, 0], [0, SIZE], [SIZE, SIZE]], float)

@@ -67,16 +67,18 @@ class LatticeDrift:
                 "n_blocks": self.n_blocks}
 
 
-def block_phases(image: np.ndarray, lattice: Lattice, *, black_level: float) -> tuple[np.ndarray, np.ndarray]:
-    """Block centres (N, 2, pixels from the lattice origin) and complex amplitudes (N, 3) of a raw
-    image at the lattice's fundamentals (black subtracted; the image's own gain does not matter)."""
-    img = np.asarray(image, dtype=np.float32) - np.float32(black_level)
-    centres, z, _ = demodulate(img, lattice, stride_px=BLOCK_STRIDE_PX)
+def block_phases(image: np.ndarray, lattice: Lattice) -> tuple[np.ndarray, np.ndarray]:
+    """Block centres (N, 2, pixels from the lattice origin) and complex amplitudes (N, 3) of an
+    image (raw counts, or the white image's devignetting map) at the lattice's fundamentals.
+
+    Read as it is, no copy: the black level is a constant, which the windowed blocks keep off the
+    fundamentals, and the image's own gain does not move their phases."""
+    centres, z, _ = demodulate(np.asarray(image), lattice, stride_px=BLOCK_STRIDE_PX)
     return centres, z
 
 
 def estimate_drift(image: np.ndarray, lattice: Lattice, white_phases: tuple[np.ndarray, np.ndarray], *,
-                   black_level: float, noise_dn: float) -> LatticeDrift | None:
+                   noise_dn: float) -> LatticeDrift | None:
     """The exposure's lattice drift against the white image (see the module docstring).
 
     Parameters
@@ -87,7 +89,6 @@ def estimate_drift(image: np.ndarray, lattice: Lattice, white_phases: tuple[np.n
         The white image's fitted lattice.
     white_phases : (centres, amplitudes)
         :func:`block_phases` of the white image (or its devignetting map) on that lattice.
-    black_level : float
     noise_dn : float
         Noise of one raw pixel about the background (DN).
 
@@ -95,7 +96,7 @@ def estimate_drift(image: np.ndarray, lattice: Lattice, white_phases: tuple[np.n
     -------
     LatticeDrift, or None where the exposure shows too little of its micro-image pattern.
     """
-    centres, z_exp = block_phases(image, lattice, black_level=black_level)
+    centres, z_exp = block_phases(image, lattice)
     _, z_white = white_phases
     if z_white.shape != z_exp.shape:
         return None

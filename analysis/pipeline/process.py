@@ -246,9 +246,8 @@ def _lattice_drift(exposure: Exposure, calibration: Calibration, cache: Cache, n
     tell; the white image's lattice then stands)."""
     lattice = calibration.model.lattice
     white = cache.get_or_make(("white_phases", calibration.white_sha1),
-                              lambda: block_phases(calibration.devignetting, lattice, black_level=0.0))
-    return estimate_drift(exposure.image, lattice, white, black_level=calibration.model.black_level,
-                          noise_dn=noise_dn)
+                              lambda: block_phases(calibration.devignetting, lattice))
+    return estimate_drift(exposure.image, lattice, white, noise_dn=noise_dn)
 
 
 def _survey(image: np.ndarray, table: LightFieldTable, samples, sub: np.ndarray, survey: np.ndarray,
