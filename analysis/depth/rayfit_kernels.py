@@ -342,7 +342,7 @@ def grid_costs(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, c
                 costs[k] = sum_v2
                 inten[k] = 0.0
             if n_cens > 0:
-                costs[k], inten[k] = _with_censored(costs[k], inten[k], cens_v, cens_f[:, q])
+                costs[k], inten[k] = _with_censored(inten[k], s_vf[q], s_ff[q], sum_v2, cens_v, cens_f[:, q])
             lit[k] = s_f[q]
             cand[k, 0] = sx0 + off_x[q]
             cand[k, 1] = sy0 + off_y[q]
@@ -514,16 +514,17 @@ def _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, cnt):
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def _with_censored(cost, inten, cens_v, cens_f):
+def _with_censored(inten, s_vf, s_ff, sum_v2, cens_v, cens_f):
     """A candidate's cost and intensity with the censored samples added: the least-squares intensity
-    of the others (or, where only censored samples are lit, the least that reaches every bound), and
-    ``max(0, v_c - I f_c)^2`` for each bound the prediction falls short of. (Refitting the
-    intensity with the bounds it falls short of fitted simulated saturated particles' depths no
-    better.)"""
+    of the others (or, where only censored samples are lit, the least that reaches every bound),
+    the others' squared misfit at that intensity, and ``max(0, v_c - I f_c)^2`` for each bound the
+    prediction falls short of. (Refitting the intensity with the bounds it falls short of fitted
+    simulated saturated particles' depths no better.)"""
     if inten <= 0.0:
         for c in range(cens_v.size):
             if cens_f[c] > 0.0:
                 inten = max(inten, cens_v[c] / cens_f[c])
+    cost = sum_v2 - 2.0 * inten * s_vf + inten * inten * s_ff
     for c in range(cens_v.size):
         short = cens_v[c] - inten * cens_f[c]
         if short > 0.0:

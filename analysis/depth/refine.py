@@ -82,6 +82,10 @@ PROBE_LIGHT = 0.5
 PROBE_BRIGHT = 1.3
 #: Left-over light counts only above this fraction of the smallest particle intensity (noise).
 LEFT_LIGHT_FLOOR = 0.3
+#: A fit must light at least this fraction of one micro-image's samples (a particle in view lights
+#: about one micro-image's worth, 36-40 on the simulated F01; a hot pixel fitted as a particle
+#: whose light misses every other sample, a small fraction of one).
+MIN_LIT_FRACTION = 0.5
 
 
 @dataclass(frozen=True)
@@ -184,10 +188,19 @@ class RayFitter:
                         cache=self.cache)
         return out
 
+    @property
+    def min_lit(self) -> float:
+        """Fewest samples a point source in view lights: the aperture falls whole on the lenses, so a
+        particle lights about one micro-image's worth of samples whatever its blur; far fewer is a
+        hot pixel, or a fragment of something else (:data:`MIN_LIT_FRACTION` of that)."""
+        return MIN_LIT_FRACTION * self.table.n_samples / max(self.table.n_lenses, 1)
+
     def acceptable(self, fit: RayFit, max_residual: float | None = None) -> np.ndarray:
-        """Fits (a mask) with enough light and a small enough misfit to be particles."""
+        """Fits (a mask) with enough light, lighting an aperture's worth of samples, and a small
+        enough misfit to be particles."""
         limit = self.max_residual if max_residual is None else max_residual
-        return (fit.intensity > max(self.min_intensity, 0.0)) & (fit.residual <= limit)
+        return ((fit.intensity > max(self.min_intensity, 0.0)) & (fit.n_lit >= self.min_lit)
+                & (fit.residual <= limit))
 
     def unique(self, peaks: Peaks, fit: RayFit, *, settled: int = 0, record: bool = True) -> tuple[Peaks, RayFit]:
         """Fits that converged onto one particle merged (the brightest kept; the first ``settled``,
@@ -282,8 +295,10 @@ def accept(fitter: RayFitter, peaks: Peaks, fit: RayFit, max_residual: float | N
     ok = fitter.acceptable(fit, max_residual)
     if record and not ok.all():
         faint = fit.intensity <= max(fitter.min_intensity, 0.0)
+        fragment = ~faint & (fit.n_lit < fitter.min_lit)
         fitter.reject(at.take(faint), fit.take(faint), "faint")
-        fitter.reject(at.take(~ok & ~faint), fit.take(~ok & ~faint), "misfit")
+        fitter.reject(at.take(fragment), fit.take(fragment), "fragment")
+        fitter.reject(at.take(~ok & ~faint & ~fragment), fit.take(~ok & ~faint & ~fragment), "misfit")
     keep = np.flatnonzero(ok)
     return at.take(keep), fit.take(keep)
 

@@ -16,6 +16,8 @@ from .curves import Peaks
 #: Why a candidate was dropped (the ``reason`` column), and what that means.
 REASONS: dict[str, str] = {
     "faint": "its fitted light is below the intensity threshold (noise, or the tail of another particle)",
+    "fragment": "its fit lights a small part of one micro-image's worth of samples: a hot pixel or a fragment, "
+                "not a point source in view",
     "misfit": "the point-source model does not explain its light (its fit's misfit is too large)",
     "duplicate": "its fit converged onto a particle already found",
     "outside_range": "its fit left the alpha range",
