@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from analysis.calibration.calibrate import Calibration
-from analysis.calibration.cache import cache_path, load_calibration, read_calibration, save_calibration
+from analysis.calibration.cache import CACHE_VERSION, cache_path, load_calibration, read_calibration, save_calibration
 from analysis.calibration.white_choice import select_white_image
 from analysis.camera.model import CameraModel, Lattice
 from analysis.errors import CalibrationError, CameraMismatchError, NoWhiteImageError
@@ -225,7 +225,7 @@ def test_cache_hit_skips_the_fit(white_folder, tmp_path):
     cache = tmp_path / "cache"
     first = load_calibration(white_folder, meta, serial=SERIAL, cache_dir=cache)
     path = cache_path(cache, SERIAL, first.white_sha1)
-    assert path.is_file() and path.parent.name == SERIAL and "v1" in path.name
+    assert path.is_file() and path.parent.name == SERIAL and f"v{CACHE_VERSION}" in path.name
     mtime = path.stat().st_mtime_ns
     second = load_calibration(white_folder, meta, serial=SERIAL, cache_dir=cache)
     assert not first.from_cache and second.from_cache

@@ -1,6 +1,7 @@
 """Calibrations kept on disk, keyed by camera serial and the white image's SHA-1, and the one call
-that gives a picture its calibration (:func:`load_calibration`: choose the white image, then read
-its calibration from the cache or fit it)."""
+that gives a picture its calibration (:func:`load_calibration`: choose the white image, read its
+calibration from the cache or fit it, and add the camera's defect map, itself cached by the frames it
+was found from: :mod:`analysis.calibration.camera_defects`)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import math
 import re
 import struct
 import zipfile
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,12 +23,15 @@ from analysis.formats.atomic_write import atomic_path
 from analysis.formats.whites import WhiteImage, load_white_images
 
 from .calibrate import Calibration, calibrate
-from .white_choice import select_white_image
+from .camera_defects import camera_defects
+from .profile import MicroImageProfile
+from .white_choice import defect_search_frames, select_white_image
 
 log = logging.getLogger(__name__)
 
 # Bump when the cache file's content or meaning changes; it is part of the file name.
-CACHE_VERSION = 1
+# 2: the micro-image profile (optical blur, aperture image radius, rim response) in the header.
+CACHE_VERSION = 2
 
 
 def cache_path(cache_dir: Path, serial: str | None, white_sha1: str) -> Path:
@@ -44,6 +48,7 @@ def save_calibration(calibration: Calibration, path: Path) -> None:
         "white_sha1": calibration.white_sha1, "zoom_step": calibration.zoom_step,
         "focus_step": calibration.focus_step, "fit_rms_px": calibration.fit_rms_px,
         "fit_n_lenses": calibration.fit_n_lenses, "fit_centroid_rms_px": calibration.fit_centroid_rms_px,
+        "profile": None if calibration.profile is None else calibration.profile.to_dict(),
         "lattice": {"origin_x": lat.origin_x, "origin_y": lat.origin_y, "pitch_px": lat.pitch_px,
                     "rotation_rad": lat.rotation_rad, "scale_x": lat.scale_x, "scale_y": lat.scale_y},
     }
@@ -85,7 +90,8 @@ def read_calibration(path: Path, *, white_sha1: str | None = None) -> Calibratio
                            white_sha1=header["white_sha1"], zoom_step=header["zoom_step"],
                            focus_step=header["focus_step"], model=model, devignetting=devignetting,
                            fit_rms_px=float(header["fit_rms_px"]), fit_n_lenses=int(header["fit_n_lenses"]),
-                           fit_centroid_rms_px=float(header["fit_centroid_rms_px"]), from_cache=True)
+                           fit_centroid_rms_px=float(header["fit_centroid_rms_px"]), from_cache=True,
+                           profile=None if header["profile"] is None else MicroImageProfile.from_dict(header["profile"]))
     except CalibrationError:
         raise
     except (OSError, EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile) as exc:
@@ -123,8 +129,9 @@ def _mapped_member(path: Path, name: str) -> np.ndarray | None:
 
 
 def load_calibration(source: Path, metadata: dict, *, serial: str | None = None,
-                     cache_dir: Path | None = None) -> Calibration:
-    """The calibration for a picture: white images loaded, one selected, fitted or read from cache.
+                     cache_dir: Path | None = None, find_defects: bool = True) -> Calibration:
+    """The calibration for a picture: white images loaded, one selected, fitted or read from cache,
+    with the camera's defective pixels found from its white images (the dark ones included).
 
     Parameters
     ----------
@@ -135,8 +142,12 @@ def load_calibration(source: Path, metadata: dict, *, serial: str | None = None,
     serial : str, optional, keyword-only
         The picture's camera serial.
     cache_dir : Path, optional, keyword-only
-        Where calibrations are cached (``<serial>/<white_sha1>.v<version>.npz``); no caching
-        if None. A cache file that cannot be read is logged, refitted and overwritten.
+        Where calibrations are cached (``<serial>/<white_sha1>.v<version>.npz``, the defect map in
+        ``<serial>/<frames key>.defects.v<version>.npz``); no caching if None. A cache file that
+        cannot be read is logged, refitted and overwritten.
+    find_defects : bool, keyword-only
+        Search the camera's white images for hot, stuck and dead pixels
+        (:func:`analysis.calibration.camera_defects.camera_defects`); False leaves ``defects`` None.
 
     Raises
     ------
@@ -145,8 +156,14 @@ def load_calibration(source: Path, metadata: dict, *, serial: str | None = None,
     CalibrationError
         If the lattice fit fails.
     """
-    white = select_white_image(load_white_images(source), metadata, serial=serial)
-    return cached_calibration(white, cache_dir=cache_dir, serial=serial, fallback_metadata=metadata)
+    whites = load_white_images(source)
+    white = select_white_image(whites, metadata, serial=serial)
+    calibration = cached_calibration(white, cache_dir=cache_dir, serial=serial, fallback_metadata=metadata)
+    if not find_defects:
+        return calibration
+    frames = defect_search_frames(whites, white, metadata, serial=serial)
+    defects = camera_defects(frames, calibration, cache_dir=cache_dir, serial=serial)
+    return replace(calibration, defects=defects)
 
 
 def cached_calibration(white: WhiteImage, *, cache_dir: Path | None, serial: str | None = None,

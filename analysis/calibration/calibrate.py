@@ -1,6 +1,8 @@
 """Calibration of one camera at one zoom/focus from a white image: the fitted micro-image lattice
-(:mod:`analysis.calibration.lattice_fit`, seeded from the white's own metadata model) and the
-devignetting map."""
+(:mod:`analysis.calibration.lattice_fit`, seeded from the white's own metadata model), the
+devignetting map, and the optical blur and micro-image response fitted to its micro-images
+(:mod:`analysis.calibration.profile`). The camera's defective pixels, found from all its calibration
+frames, join it in :func:`analysis.calibration.cache.load_calibration`."""
 
 from __future__ import annotations
 
@@ -9,11 +11,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from analysis.camera.model import CameraModel, Lattice
-from analysis.errors import MetadataError
+from analysis.camera.model import IDEAL_POINT_SPREAD_PX, CameraModel, Lattice
+from analysis.errors import CalibrationError, MetadataError
 from analysis.formats.whites import WhiteImage
 
+from .defects import DefectMap
 from .lattice_fit import LatticeFit, fit_lattice
+from .profile import MicroImageProfile, fit_micro_image_profile
+
+#: The point spread (sigma, px) the depth fit models when the white image gives none: the ideal
+#: optics' (camera-model.md step 4).
+DEFAULT_BLUR_PX = IDEAL_POINT_SPREAD_PX
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +55,14 @@ class Calibration:
         centroids are noisier than the fit).
     from_cache : bool
         True when this calibration was read from the cache instead of fitted.
+    profile : MicroImageProfile or None
+        The optical blur, the aperture image's radius and the pixel response toward the rim, fitted
+        to the white image's micro-images; None when the white image allowed no fit (then the depth
+        fit models the ideal optics' blur, :data:`DEFAULT_BLUR_PX`).
+    defects : DefectMap or None
+        Hot, stuck and dead pixels of the camera, from all its calibration frames
+        (:func:`analysis.calibration.cache.load_calibration`); the look-up tables leave them out.
+        None when not searched.
     """
 
     serial: str | None
@@ -60,14 +76,31 @@ class Calibration:
     fit_n_lenses: int
     fit_centroid_rms_px: float
     from_cache: bool = False
+    profile: MicroImageProfile | None = None
+    defects: DefectMap | None = None
 
     @property
     def lattice(self) -> Lattice:
         return self.model.lattice
 
+    @property
+    def blur_px(self) -> float:
+        """Sigma (px) of the camera's point spread for the depth fit: the white image's, else the default."""
+        return DEFAULT_BLUR_PX if self.profile is None else self.profile.blur_px
+
+    @property
+    def defect_mask(self) -> np.ndarray | None:
+        """ndarray (H, W) bool of the defective pixels, or None when there are none (or no search)."""
+        return None if self.defects is None or len(self.defects) == 0 else self.defects.mask
+
+    @property
+    def defects_key(self) -> str:
+        """What the look-up tables built with this calibration's defect map are filed under ("" for none)."""
+        return "" if self.defects is None or len(self.defects) == 0 else self.defects.key
+
 
 def calibrate(white: WhiteImage, *, fallback_metadata: dict | None = None) -> Calibration:
-    """Fit the lattice to a white image and keep its devignetting map.
+    """Fit the lattice and the micro-image profile to a white image and keep its devignetting map.
 
     Parameters
     ----------
@@ -81,7 +114,7 @@ def calibrate(white: WhiteImage, *, fallback_metadata: dict | None = None) -> Ca
     MetadataError
         If neither metadata gives a camera model.
     CalibrationError
-        If the lattice fit fails.
+        If the lattice fit fails (a failed profile fit is logged and leaves ``profile`` None).
     """
     try:
         model = CameraModel.from_metadata(white.metadata)
@@ -94,6 +127,14 @@ def calibrate(white: WhiteImage, *, fallback_metadata: dict | None = None) -> Ca
     fit: LatticeFit = fit_lattice(raw, model.lattice, black_level=model.black_level)
     log.info("white image %s: lattice %s, fit rms %.4f px over %d blocks, %d lenses (centroid rms %.3f px)",
              white.name, fit.lattice, fit.rms_px, fit.n_blocks, fit.n_lenses, fit.centroid_rms_px)
+    try:
+        profile: MicroImageProfile | None = fit_micro_image_profile(
+            raw, fit.lattice, black_level=model.black_level, white_level=model.white_level,
+            radius_px=model.optics.micro_image_radius_px)
+    except CalibrationError as exc:
+        log.warning("white image %s: no micro-image profile (%s); the depth fit models the default blur of %.2f px",
+                    white.name, exc, DEFAULT_BLUR_PX)
+        profile = None
     devignetting = raw.astype(np.float32)
     devignetting -= np.float32(model.black_level)
     devignetting *= np.float32(1.0 / (model.white_level - model.black_level))
@@ -101,4 +142,4 @@ def calibrate(white: WhiteImage, *, fallback_metadata: dict | None = None) -> Ca
                        zoom_step=white.zoom_step, focus_step=white.focus_step,
                        model=model.with_lattice(fit.lattice), devignetting=devignetting,
                        fit_rms_px=fit.rms_px, fit_n_lenses=fit.n_lenses,
-                       fit_centroid_rms_px=fit.centroid_rms_px)
+                       fit_centroid_rms_px=fit.centroid_rms_px, profile=profile)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -71,6 +71,57 @@ def _distance(value: int | None, target: int | None) -> float:
     return math.inf if value is None else abs(value - target)
 
 
+def _short_exposure(whites: list[WhiteImage]) -> Callable[[WhiteImage], bool]:
+    """Whether a white image was exposed shorter than the mean of ``whites`` (a dark one)."""
+    durations = [w.exposure_duration_s for w in whites if w.exposure_duration_s is not None]
+    mean_duration = float(np.mean(durations)) if durations else None
+
+    def short(w: WhiteImage) -> bool:
+        d = w.exposure_duration_s
+        return mean_duration is not None and d is not None and d < mean_duration * (1 - 1e-9)
+
+    return short
+
+
+def defect_search_frames(whites: list[WhiteImage], chosen: WhiteImage, metadata: dict, *, serial: str | None = None,
+                         max_bright: int = 4, max_dark: int = 2) -> list[tuple[WhiteImage, bool]]:
+    """The frames of one camera that its pixel-defect search reads, each with whether it is dark.
+
+    ``chosen`` (the picture's white image) first; then the camera's other bright white images and
+    its dark ones (short exposure, or mean raw value below 500), nearest to ``chosen`` in
+    ``zoomStep``, then ``focusStep``, at most ``max_bright`` bright frames in all and ``max_dark``
+    dark ones (an F01 holds some 60 white images of 16 MB each; a few show its defects).
+
+    Parameters
+    ----------
+    whites : list of WhiteImage
+    chosen : WhiteImage
+        From :func:`select_white_image`.
+    metadata : dict
+        Frame metadata of the picture (which camera).
+    serial : str, optional, keyword-only
+    max_bright, max_dark : int, keyword-only
+    """
+    mine = [w for w in whites if w is not chosen and _of_this_camera(w, metadata, serial)
+            and w.raw_length == chosen.raw_length]
+    short = _short_exposure(mine + [chosen])
+    mine.sort(key=lambda w: (_distance(w.zoom_step, chosen.zoom_step), _distance(w.focus_step, chosen.focus_step),
+                             w.name))
+    frames: list[tuple[WhiteImage, bool]] = [(chosen, False)]
+    n_bright, n_dark = 1, 0
+    for w in mine:
+        if n_bright >= max_bright and n_dark >= max_dark:
+            break
+        dark = short(w) or white_mean_level(w) < DARK_MEAN_LEVEL
+        if dark and n_dark < max_dark:
+            frames.append((w, True))
+            n_dark += 1
+        elif not dark and n_bright < max_bright:
+            frames.append((w, False))
+            n_bright += 1
+    return frames
+
+
 def select_white_image(whites: list[WhiteImage], metadata: dict, *, serial: str | None = None) -> WhiteImage:
     """The white image to calibrate a picture with.
 
@@ -103,13 +154,7 @@ def select_white_image(whites: list[WhiteImage], metadata: dict, *, serial: str 
         raise CameraMismatchError(
             f"none of the {len(whites)} white image(s) is of camera {serial or '(no serial)'} with a "
             f"{width}x{height} px picture; found: {'; '.join(others)}. Pull the white images from this camera")
-    durations = [w.exposure_duration_s for w in mine if w.exposure_duration_s is not None]
-    mean_duration = float(np.mean(durations)) if durations else None
-
-    def short(w: WhiteImage) -> bool:
-        d = w.exposure_duration_s
-        return mean_duration is not None and d is not None and d < mean_duration * (1 - 1e-9)
-
+    short = _short_exposure(mine)
     candidates = [w for w in mine if not short(w)]
     zoom, focus = lookup(metadata, "devices.lens.zoomStep"), lookup(metadata, "devices.lens.focusStep")
     zoom = None if zoom is None else int(zoom)

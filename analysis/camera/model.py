@@ -18,6 +18,10 @@ from analysis.errors import MetadataError
 
 SQRT3 = math.sqrt(3.0)
 
+#: Sigma (px) of the small Gaussian blur the model gives the sensor image (camera-model.md, "How a
+#: ray reaches the sensor", step 4): what the depth fit assumes when no white image says otherwise.
+IDEAL_POINT_SPREAD_PX = 0.5
+
 # An exit-pupil distance beyond this (one firmware writes 10000 m) means "telecentric".
 _MAX_EXIT_PUPIL_M = 10.0
 

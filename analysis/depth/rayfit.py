@@ -28,6 +28,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from analysis.cache import Cache
+from analysis.camera.model import IDEAL_POINT_SPREAD_PX
 from analysis.lightfield.table import LightFieldTable
 
 from analysis.depth import rayfit_kernels as kern
@@ -123,6 +124,10 @@ class FitGrid(NamedTuple):
     temperature: float
 
 
+#: The ideal optics' point spread (sigma, px; camera-model.md step 4): what the fit models when it is
+#: told no other (a calibration estimates the camera's own from its white image).
+DEFAULT_BLUR_PX = IDEAL_POINT_SPREAD_PX
+
 #: The default passes of :func:`fit_rays` (the pipeline's own are in :mod:`analysis.depth.refine`).
 COARSE = FitGrid(depths=33, lateral_pitches=0.4, positions=3, pixel_points=1, temperature=1.0)
 FINE = FitGrid(depths=9, lateral_pitches=0.25, positions=3, pixel_points=3, temperature=0.5)
@@ -173,7 +178,7 @@ def _sum_per_point(values: np.ndarray, g: Gathered, n: int) -> np.ndarray:
     return np.bincount(owner, weights=per_lens, minlength=n)
 
 
-def render_fits(table: LightFieldTable, fit: RayFit, *, aperture_per_lens_plane: float, blur_px: float = 0.5,
+def render_fits(table: LightFieldTable, fit: RayFit, *, aperture_per_lens_plane: float, blur_px: float = DEFAULT_BLUR_PX,
                 out: np.ndarray | None = None, cache: Cache | None = None) -> np.ndarray:
     """The light that fitted particles put on each sample of ``table`` (devignetted DN).
 
@@ -251,7 +256,7 @@ def pixel_footprint(n_side: int, blur_px: float) -> np.ndarray:
 def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m: np.ndarray,
              alpha0: np.ndarray, *, background: float | np.ndarray, aperture_per_lens_plane: float,
              alpha_half_range: float = 0.004, coarse: FitGrid = COARSE, fine: FitGrid = FINE,
-             reach_pitches: float = 1.2, blur_px: float = 0.5, subtract: np.ndarray | None = None,
+             reach_pitches: float = 1.2, blur_px: float = DEFAULT_BLUR_PX, subtract: np.ndarray | None = None,
              own: RayFit | None = None, prior_alpha: np.ndarray | None = None,
              prior_sigma: np.ndarray | None = None, prior_outlier: float = 0.05, saturation: float = 4095.0,
              cache: Cache | None = None) -> RayFit:

@@ -27,7 +27,7 @@ from analysis.detection.curves import Peaks, unique_indices
 from analysis.detection.rejections import Rejections
 from analysis.lightfield.table import LightFieldTable
 
-from .rayfit import FitGrid, RayFit, fit_rays, render_fits, unexplained_light
+from .rayfit import DEFAULT_BLUR_PX, FitGrid, RayFit, fit_rays, render_fits, unexplained_light
 
 log = logging.getLogger(__name__)
 
@@ -115,6 +115,11 @@ class RayFitter:
         Where the stages record the candidates they drop, with the reason.
     saturation : float
         Raw value at which the sensor saturates (the model's white level): such samples are censored.
+    blur_px : float
+        Gaussian blur (sigma, sensor pixels) of the camera's point spread that every fit and render
+        models (:func:`analysis.depth.rayfit.fit_rays`); the calibration's estimate from its white
+        image (:attr:`analysis.calibration.calibrate.Calibration.blur_px`), by default the ideal
+        optics' 0.5 px.
     """
 
     image: np.ndarray
@@ -131,6 +136,7 @@ class RayFitter:
     cache: Cache | None = None
     rejected: Rejections | None = None
     saturation: float = 4095.0
+    blur_px: float = DEFAULT_BLUR_PX
 
     @property
     def pitch_m(self) -> float:
@@ -152,7 +158,7 @@ class RayFitter:
         """
         settings = dict(background=self.background, aperture_per_lens_plane=self.aperture_per_lens_plane,
                         alpha_half_range=self.alpha_half_range, coarse=self.coarse, cache=self.cache,
-                        saturation=self.saturation)
+                        saturation=self.saturation, blur_px=self.blur_px)
         settings.update(options)
         if wide_fine is None:
             wide_fine = WIDE_FINE_GRID if fine is None else fine
@@ -185,7 +191,7 @@ class RayFitter:
         for start in range(0, len(fit), FIT_CHUNK):  # in particle order, as one call would add them
             chunk = fit.take(np.arange(start, min(start + FIT_CHUNK, len(fit))))
             render_fits(self.table, chunk, aperture_per_lens_plane=self.aperture_per_lens_plane, out=out,
-                        cache=self.cache)
+                        cache=self.cache, blur_px=self.blur_px)
         return out
 
     @property

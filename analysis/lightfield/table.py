@@ -176,32 +176,39 @@ class LightFieldTable:
 
 
 def build_table(calibration: Any, *, model: CameraModel | None = None, rim_px: float = 1.0,
-                min_weight: float = 0.05, grid_oversample: float = 1.0) -> LightFieldTable:
-    """Build the look-up table of a calibration (its fitted lattice and its white image).
+                min_weight: float = 0.05, grid_oversample: float = 1.0,
+                defects: np.ndarray | None = None) -> LightFieldTable:
+    """Build the look-up table of a calibration (its fitted lattice, its white image, and the camera's
+    defective pixels, which the table leaves out).
 
     Parameters
     ----------
     calibration : analysis.calibration.calibrate.Calibration
-        Has ``.model`` (:class:`CameraModel` with the fitted lattice) and ``.devignetting``
-        (float32 (H, W), the white image scaled to 0 ... 1).
+        Has ``.model`` (:class:`CameraModel` with the fitted lattice), ``.devignetting``
+        (float32 (H, W), the white image scaled to 0 ... 1) and ``.defect_mask`` (bool (H, W) or
+        None: the camera's hot, stuck and dead pixels).
     model : CameraModel, optional
         The exposure's model, when its optics (exit pupil, aperture) differ from the white
         image's; its lattice is replaced by the calibration's fitted one.
     rim_px, min_weight, grid_oversample
         As in :func:`build_table_from_model`.
+    defects : ndarray of shape (H, W), bool, optional
+        Pixels to leave out instead of the calibration's ``defect_mask``.
 
     Returns
     -------
     LightFieldTable
     """
     fitted = calibration.model if model is None else model.with_lattice(calibration.model.lattice)
-    return build_table_from_model(fitted, calibration.devignetting,
-                                  rim_px=rim_px, min_weight=min_weight, grid_oversample=grid_oversample)
+    if defects is None:
+        defects = getattr(calibration, "defect_mask", None)
+    return build_table_from_model(fitted, calibration.devignetting, rim_px=rim_px, min_weight=min_weight,
+                                  grid_oversample=grid_oversample, defects=defects)
 
 
 def build_table_from_model(model: CameraModel, devignetting: np.ndarray | None = None, *,
                            rim_px: float = 1.0, min_weight: float = 0.05,
-                           grid_oversample: float = 1.0) -> LightFieldTable:
+                           grid_oversample: float = 1.0, defects: np.ndarray | None = None) -> LightFieldTable:
     """Build the look-up table from a camera model and, optionally, a normalised white image.
 
     Parameters
@@ -221,6 +228,9 @@ def build_table_from_model(model: CameraModel, devignetting: np.ndarray | None =
         Smallest white-image value a used pixel may have.
     grid_oversample : float
         Output pixels per lens row spacing of the default grid (1: about one pixel per lens).
+    defects : ndarray of shape (H, W), bool, optional
+        Pixels to leave out (hot, stuck, dead: ``Calibration.defect_mask``), so that refocusing,
+        detection and the depth fit never see them.
 
     Returns
     -------
@@ -229,7 +239,8 @@ def build_table_from_model(model: CameraModel, devignetting: np.ndarray | None =
     Raises
     ------
     ParameterError
-        If ``rim_px`` leaves no pixel of the micro-image, or ``devignetting`` has the wrong shape.
+        If ``rim_px`` leaves no pixel of the micro-image, or ``devignetting`` or ``defects`` has the
+        wrong shape.
     CalibrationError
         If no green pixel ends up in the table (a lattice that misses the sensor).
     """
@@ -246,6 +257,11 @@ def build_table_from_model(model: CameraModel, devignetting: np.ndarray | None =
             raise ParameterError(
                 f"devignetting image is {devignetting.shape}, the sensor is {(model.height, model.width)}; "
                 "pass the white image of this camera")
+    if defects is not None:
+        defects = np.asarray(defects, dtype=bool)
+        if defects.shape != (model.height, model.width):
+            raise ParameterError(f"defect mask is {defects.shape}, the sensor is {(model.height, model.width)}; "
+                                 "pass the defect map of this camera")
     k_ap = optics.aperture_m_per_px
     p_exit = optics.exit_pupil_m
 
@@ -260,6 +276,8 @@ def build_table_from_model(model: CameraModel, devignetting: np.ndarray | None =
         rr, cc = rr[ok], cc[ok]
         i, j, dx, dy = model.micro_image_offsets(cc + 0.5, rr + 0.5)
         inside = dx * dx + dy * dy <= keep_radius * keep_radius
+        if defects is not None:
+            inside &= ~defects[rr, cc]
         rr, cc, i, j, dx, dy = rr[inside], cc[inside], i[inside], j[inside], dx[inside], dy[inside]
         u = -dx * k_ap
         v = -dy * k_ap

@@ -186,7 +186,8 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         max_residual=params.max_fit_residual, merge_radius_px=params.link_radius_px,
         merge_alpha=params.merge_slices * (float(alphas[1] - alphas[0]) if params.user_range
                                            else lattice_step(params.n_slices)),
-        cache=cache, rejected=rejected, saturation=model.white_level) if params.refine else None
+        cache=cache, rejected=rejected, saturation=model.white_level,
+        blur_px=calibration.blur_px) if params.refine else None
     if not params.user_range:
         with clock.stage("survey"):
             found = _survey(exposure.image, table, samples, sub, alphas, params, threshold, cache, fitter)

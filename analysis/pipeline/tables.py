@@ -32,21 +32,25 @@ MIN_WEIGHT = 0.05
 
 def table_cache_path(cache_dir: Path, calibration: Calibration, grid_oversample: float,
                      rim_px: float = REFOCUS_TABLE_RIM_PX) -> Path:
-    """Where the look-up table of a calibration is kept, beside the calibration cache."""
+    """Where the look-up table of a calibration is kept, beside the calibration cache (named by its white
+    image and, when it leaves defective pixels out, by the defect map's key)."""
     serial = calibration.serial or "unknown-serial"
+    defects = f".d{calibration.defects_key[:16]}" if calibration.defects_key else ""
     return (Path(cache_dir) / serial
-            / f"{calibration.white_sha1}.lut.v{TABLE_FORMAT_VERSION}.o{grid_oversample:g}.r{rim_px:g}.npz")
+            / f"{calibration.white_sha1}.lut.v{TABLE_FORMAT_VERSION}{defects}.o{grid_oversample:g}.r{rim_px:g}.npz")
 
 
 def get_table(calibration: Calibration, cache: Cache, *, grid_oversample: float = 1.0,
               rim_px: float = REFOCUS_TABLE_RIM_PX) -> LightFieldTable:
     """The look-up table of a calibration: from ``cache``, else from its directory, else built.
 
-    A table built here is written to the cache's directory (when it has one);
+    The table leaves the calibration's defective pixels out (``Calibration.defect_mask``). A table
+    built here is written to the cache's directory (when it has one);
     :func:`save_normalisations` writes it again once the cache holds new refocus normalisations
     for it. ``rim_px`` as in :func:`analysis.lightfield.table.build_table`.
     """
-    key = ("table", calibration.serial, calibration.white_sha1, float(grid_oversample), float(rim_px))
+    key = ("table", calibration.serial, calibration.white_sha1, calibration.defects_key, float(grid_oversample),
+           float(rim_px))
     table = cache.get(key)
     if table is not None:
         return table
