@@ -113,6 +113,23 @@ def test_render_in_chunks_equals_one_call(scene, monkeypatch):
     assert np.count_nonzero(whole) > 20 * len(fit)
 
 
+def test_the_fitter_fits_and_renders_with_its_blur(scene):
+    """``RayFitter.blur_px`` (the calibration's estimate) reaches every fit and render it makes."""
+    from dataclasses import replace
+
+    model, table, image, s_hat, alpha = scene
+    fitter = replace(_fitter(model, table, image), blur_px=1.1)
+    args = dict(background=0.0, aperture_per_lens_plane=fitter.aperture_per_lens_plane, alpha_half_range=0.004,
+                coarse=COARSE, fine=FINE_GRID)
+    got = fitter.fit(s_hat[:, 0], s_hat[:, 1], alpha, fine=FINE_GRID)
+    _same(got, fit_rays(image, table, s_hat[:, 0], s_hat[:, 1], alpha, blur_px=1.1, **args))
+    assert not np.array_equal(got.alpha, fit_rays(image, table, s_hat[:, 0], s_hat[:, 1], alpha, **args).alpha)
+    np.testing.assert_array_equal(fitter.render(got), render_fits(table, got, blur_px=1.1,
+                                                                  aperture_per_lens_plane=fitter.aperture_per_lens_plane))
+    assert not np.array_equal(fitter.render(got), render_fits(table, got,
+                                                              aperture_per_lens_plane=fitter.aperture_per_lens_plane))
+
+
 def test_screen_drops_a_second_fit_of_one_particle_and_only_what_the_full_refit_drops(scene):
     model, table, image, s_hat, alpha = scene
     fitter = _fitter(model, table, image)
