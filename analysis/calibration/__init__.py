@@ -3,8 +3,12 @@
 - ``white_choice``: which white image calibrates a picture (same camera, nearest zoom, then
   focus; dark ones skipped).
 - ``lattice_fit``: the global hexagonal micro-image lattice fitted to a white image.
-- ``calibrate``: :class:`~analysis.calibration.calibrate.Calibration` (fitted lattice and
-  devignetting map) from one white image.
+- ``profile``: the optical blur, the aperture image's radius and the rim response fitted to a white
+  image's micro-images (kernels in ``profile_kernels``).
+- ``defects``: hot, stuck and dead pixels from a camera's calibration frames (kernels in
+  ``defects_kernels``); ``camera_defects``: which frames, their lattices, the maps kept on disk.
+- ``calibrate``: :class:`~analysis.calibration.calibrate.Calibration` (fitted lattice, devignetting
+  map, micro-image profile; the defect map joins it) from one white image.
 - ``cache``: calibrations kept on disk by camera serial and white SHA-1, and
   ``load_calibration``, the one call a picture needs.
 

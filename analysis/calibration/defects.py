@@ -2,9 +2,14 @@
 
 A sensor's defects are the same in every frame it takes, the white images and the dark white image
 alike, while noise is not. Each frame's pixels are compared with what the frame predicts for them
-from the micro-images around (:func:`frame_residuals`: the same place in the six neighbouring
-micro-images, scaled by the lenses' levels), with a noise level from the frame itself plus the
-disagreement of those six. A pixel is a defect (:func:`find_defects`) when
+from the micro-images around (:func:`frame_residuals`): a white image repeats from micro-image to
+micro-image, and since their centres fall at every sub-pixel phase, some lattice steps are within a
+tenth of a pixel of a whole, even number of pixels (:func:`witness_steps`); the pixels that far away
+sit at the same place in their micro-images and are of the same Bayer colour. The median of seven
+such witnesses, each scaled by the ratio of the two lenses' levels (transmission, vignetting), is
+the prediction; no interpolation, whose error on the steep micro-image rims repeats in every white
+image of one geometry and would pass for a defect. The noise is the frame's own at that level plus
+the witnesses' disagreement. A pixel is a defect (:func:`find_defects`) when
 
 - it is bright in a dark frame (hot pixels add a fixed number of DN, which a dark frame shows best,
   and stuck ones read the white level), or
@@ -20,7 +25,8 @@ from __future__ import annotations
 
 import hashlib
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import cached_property
 from typing import Iterable, Sequence
 
 import numpy as np
@@ -83,7 +89,7 @@ class FrameResiduals:
             return self.residual_dn / self.sigma_dn
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class DefectMap:
     """Pixels of one sensor that do not respond as their neighbours do.
 
@@ -111,7 +117,6 @@ class DefectMap:
     key: str = ""
     HOT = 1
     DARK = 2
-    _mask: list = field(default_factory=list, repr=False, compare=False)
 
     @property
     def n_hot(self) -> int:
@@ -124,14 +129,12 @@ class DefectMap:
     def __len__(self) -> int:
         return int(self.index.size)
 
-    @property
+    @cached_property
     def mask(self) -> np.ndarray:
         """ndarray (H, W) bool, True on a defect (built once)."""
-        if not self._mask:
-            mask = np.zeros(self.height * self.width, dtype=bool)
-            mask[self.index] = True
-            self._mask.append(mask.reshape(self.height, self.width))
-        return self._mask[0]
+        mask = np.zeros(self.height * self.width, dtype=bool)
+        mask[self.index] = True
+        return mask.reshape(self.height, self.width)
 
     @classmethod
     def empty(cls, height: int, width: int) -> "DefectMap":
