@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -93,10 +94,51 @@ class Calibration:
         """ndarray (H, W) bool of the defective pixels, or None when there are none (or no search)."""
         return None if self.defects is None or len(self.defects) == 0 else self.defects.mask
 
+    @cached_property
+    def devignetting_without_defects(self) -> np.ndarray:
+        """The devignetting map with each defective pixel replaced by the median of its nearest pixels of
+        the same Bayer colour that are not defective (the map itself when there are none): for reading
+        the white image between pixels (a drifted lattice's weights), where a hot pixel would leak into
+        its neighbours."""
+        if self.defect_mask is None:
+            return self.devignetting
+        return repaired(self.devignetting, self.defects.index)
+
     @property
     def defects_key(self) -> str:
         """What the look-up tables built with this calibration's defect map are filed under ("" for none)."""
         return "" if self.defects is None or len(self.defects) == 0 else self.defects.key
+
+
+def repaired(image: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """A copy of ``image`` (H, W, Bayer) with the pixels at flat ``index`` replaced by the median of their
+    nearest pixels of the same colour (two apart along rows and columns, and for green sites, whose
+    colour repeats diagonally, the four diagonal neighbours) that are not in ``index`` themselves.
+
+    Examples
+    --------
+    >>> im = np.arange(36, dtype=np.float32).reshape(6, 6)
+    >>> im[2, 3] = 1000.0
+    >>> float(repaired(im, np.array([2 * 6 + 3]))[2, 3])
+    15.0
+    """
+    h, w = image.shape
+    out = np.array(image, copy=True)
+    bad = np.zeros(h * w, dtype=bool)
+    bad[index] = True
+    bad = bad.reshape(h, w)
+    rows, cols = np.divmod(np.asarray(index, dtype=np.int64), w)
+    green = (rows + cols) % 2 == 1
+    offsets = [(-2, 0), (2, 0), (0, -2), (0, 2), (-1, -1), (-1, 1), (1, -1), (1, 1)]
+    values = np.full((rows.size, len(offsets)), np.nan)
+    for k, (dr, dc) in enumerate(offsets):
+        r, c = rows + dr, cols + dc
+        ok = (r >= 0) & (r < h) & (c >= 0) & (c < w) & (green if abs(dr) == 1 else True)
+        ok[ok] &= ~bad[r[ok], c[ok]]
+        values[ok, k] = image[r[ok], c[ok]]
+    have = np.isfinite(values).any(axis=1)
+    out[rows[have], cols[have]] = np.nanmedian(values[have], axis=1)
+    return out
 
 
 def calibrate(white: WhiteImage, *, fallback_metadata: dict | None = None) -> Calibration:

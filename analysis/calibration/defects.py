@@ -160,7 +160,7 @@ def witness_steps(lattice: Lattice, *, rings: int = WITNESS_RINGS, n_use: int = 
     --------
     >>> steps, shifts = witness_steps(Lattice(0.0, 0.0, 10.0), rings=3, n_use=2)
     >>> shifts.tolist()
-    [[-20, 0], [20, 0]]
+    [[-10, 0], [10, 0]]
     """
     steps = lattice_steps(rings)
     vec = steps @ lattice.basis.T

@@ -119,7 +119,7 @@ def micro_image_template(blur_px: float, radius_px: float, rim_response: float, 
     --------
     >>> t = micro_image_template(0.5, 4.0, 1.0, half_width_px=8.0)
     >>> n = t.shape[0]
-    >>> round(float(t[n // 2, n // 2]), 3), round(float(t[n // 2, n // 2 + 160]), 3)
+    >>> round(float(t[n // 2, n // 2]), 3), round(float(t[n // 2, n // 2 + 100]), 3)
     (1.0, 0.0)
     """
     n = _fft_size(2.0 * half_width_px / step_px)

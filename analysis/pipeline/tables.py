@@ -115,6 +115,6 @@ def drifted_fit_table(calibration: Calibration, cache: Cache, drift: LatticeDrif
         cx, cy = lattice.centre(base.lens_ij[:, 0], base.lens_ij[:, 1])
         shift = np.column_stack(steps.displacement(cx, cy, lattice))
         optics = calibration.model.optics
-        return shifted_table(base, calibration.devignetting, shift,
+        return shifted_table(base, calibration.devignetting_without_defects, shift,
                              m_per_px=optics.pixel_pitch_m / optics.projection_factor)
     return cache.get_or_make(("drifted_table", base.uid, q), make)
