@@ -25,6 +25,7 @@ from analysis.formats.whites import WhiteImage
 from .calibrate import Calibration
 from .defects import DEFECTS_VERSION, CalibrationFrame, DefectMap, find_defects, frames_key
 from .lattice_fit import fit_lattice
+from .white_choice import remembered
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +105,7 @@ def camera_defects(frames: Sequence[tuple[WhiteImage, bool]], calibration: Calib
 
     A cache file that cannot be read is logged and rebuilt; one that cannot be written is logged.
     """
-    key = frames_key([white.sha1 for white, _ in frames])
+    key = frames_key([remembered(white, "sha1", lambda w: w.sha1) for white, _ in frames])
     path = None if cache_dir is None else defects_cache_path(Path(cache_dir), calibration.serial or serial, key)
     if path is not None and path.is_file():
         try:

@@ -278,8 +278,9 @@ def _gather(raw: np.ndarray, lattice: Lattice, *, black_level: float, white_leve
                                "an exposed white image")
     # A second stop only ever takes light away: full micro-images are those of the largest areas.
     reference = float(np.percentile(area[finite], 90))
-    near = area[region][finite[region]]
-    spread = 1.4826 * float(np.median(np.abs(near - np.median(near)))) if near.size else 0.0
+    region_areas = area[region][finite[region]]
+    spread = (1.4826 * float(np.median(np.abs(region_areas - np.median(region_areas)))) if region_areas.size
+              else 0.0)
     tolerance = max(_AREA_TOLERANCE, 3.0 * spread / reference)
     full = finite & (area >= (1.0 - tolerance) * reference)
     n_cut = int(np.count_nonzero(finite[region] & ~full[region]))

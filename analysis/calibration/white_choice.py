@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from typing import Any, Callable
 
 import numpy as np
@@ -20,6 +21,30 @@ log = logging.getLogger(__name__)
 DARK_MEAN_LEVEL = 500.0
 _MLA_FIELDS = ("devices.mla.lensPitch", "devices.mla.rotation", "devices.mla.sensorOffset.x",
                "devices.mla.sensorOffset.y", "devices.mla.sensorOffset.z")
+
+
+# Values computed from white images' raw bytes, per file state: a camera's calibration is looked up
+# for every picture, and reading its white images each time would cost more than the rest.
+_REMEMBERED: dict[tuple, Any] = {}
+_REMEMBER_MAX = 1024
+
+
+def remembered(white: WhiteImage, what: str, compute: Callable[[WhiteImage], Any]) -> Any:
+    """``compute(white)``, remembered in this process while the white image's file is unchanged (same
+    path, size and modification time); computed afresh for a white image held in memory."""
+    source = white.raw_source
+    if source is None:
+        return compute(white)
+    try:
+        stat = os.stat(source.path)
+    except OSError:
+        return compute(white)
+    key = (what, str(source.path), source.offset, source.length, stat.st_size, stat.st_mtime_ns)
+    if key not in _REMEMBERED:
+        if len(_REMEMBERED) >= _REMEMBER_MAX:
+            _REMEMBERED.clear()
+        _REMEMBERED[key] = compute(white)
+    return _REMEMBERED[key]
 
 
 def white_mean_level(white: WhiteImage, *, step: int = 16) -> float:
@@ -112,7 +137,7 @@ def defect_search_frames(whites: list[WhiteImage], chosen: WhiteImage, metadata:
     for w in mine:
         if n_bright >= max_bright and n_dark >= max_dark:
             break
-        dark = short(w) or white_mean_level(w) < DARK_MEAN_LEVEL
+        dark = short(w) or remembered(w, "mean level", white_mean_level) < DARK_MEAN_LEVEL
         if dark and n_dark < max_dark:
             frames.append((w, True))
             n_dark += 1
