@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from analysis.camera.front_optics import FrontOptics
+from analysis.camera.front_optics import FrontOptics, sensor_reference_tan
 from analysis.errors import ParameterError
-from .camera import DEFAULT_LENS
+from .camera import DEFAULT_LENS, F01_PIXEL_PITCH_M, F01_SIZE
 from .scenarios import Particles
 
 #: The scenario name of a target (``plenodust simulate --scenario target``).
@@ -125,6 +125,16 @@ class DotTarget:
         out["positions_mm"] = list(self.positions_mm)
         out["offset_mm"] = list(self.offset_mm)
         return out
+
+
+def simulated_front_optics(aux_focal_mm: float | None = None, aux_distance_mm: float = 20.0, *,
+                           distortion: float = 0.0) -> FrontOptics | None:
+    """The simulated camera's front optics: an auxiliary lens (None: none) and radial distortion given
+    as the fractional displacement at the corner of the full F01 sensor. None when there are neither."""
+    if aux_focal_mm is None and distortion == 0.0:
+        return None
+    corner = sensor_reference_tan(F01_SIZE, F01_SIZE, F01_PIXEL_PITCH_M, DEFAULT_LENS.lens_to_mla_m)
+    return FrontOptics.with_lens(aux_focal_mm, aux_distance_mm, distortion=distortion, reference_tan=corner)
 
 
 def default_target(front: FrontOptics | None = None, **plate: Any) -> DotTarget:
