@@ -79,6 +79,9 @@ class ExposureInfo(BaseModel):
     slice_binning: int = Field(description="output-image pixels per slice pixel along each axis")
     warnings: list[str]
     timings: dict[str, float] = Field(description="seconds per pipeline stage")
+    coordinates: dict[str, Any] | None = Field(
+        None, description="the physical calibration X, Y, Z came from: kind 'target' (with the calibration's "
+                          "sha1, model and volume) or 'thin-lens' (the metadata's fallback)")
 
 
 class ParticleTable(BaseModel):

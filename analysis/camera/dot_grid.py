@@ -4,8 +4,8 @@ A target's dots, found in one exposure, are points in the image (lens-plane posi
 grid is identified locally, so that distortion, perspective of a tilted plate and a magnification
 that changes with depth do not matter:
 
-1. the typical spacing (median distance to the 4th-nearest dot) and duplicates (dots closer than a
-   third of it to a brighter one) dropped;
+1. duplicates (dots closer than a third of the typical spacing to a brighter one) dropped, the
+   typical spacing from the distance to the nearest dot;
 2. the grid's two directions from the neighbour vectors (their angles folded four-fold); columns
    step along the direction nearest the image's ``+x``, rows along the one nearest ``+y``;
 3. the dot nearest the optical axis is row 0, column 0; from it the grid grows dot by dot, each
@@ -123,12 +123,12 @@ def identify_grid(points: np.ndarray, *, axis: tuple[float, float] = (0.0, 0.0),
     ids = _deduplicate(pts, np.flatnonzero(finite), weight)
     p = pts[ids]
     tree = cKDTree(p)
-    k = min(5, len(p))
-    dist, _ = tree.query(p, k=k)
-    spacing = float(np.median(dist[:, min(4, k - 1)])) if k > 1 else math.nan
+    dist, _ = tree.query(p, k=2)
+    spacing = float(np.median(dist[:, 1])) if len(p) > 1 else math.nan
     if not spacing > 0:
         raise GridIdentificationError("the dots lie on top of each other; is this a dot target?")
     col_step, row_step = _grid_steps(p, tree, spacing)
+    spacing = 0.5 * float(np.hypot(*col_step) + np.hypot(*row_step))
     origin = int(np.argmin(np.hypot(p[:, 0] - axis[0], p[:, 1] - axis[1])))
     placed = _grow(p, tree, origin, col_step, row_step, spacing * tolerance)
     members = np.array(sorted(placed.values()), dtype=np.int64)

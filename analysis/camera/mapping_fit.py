@@ -20,7 +20,8 @@ from scipy.spatial.transform import Rotation
 
 from analysis.errors import ParameterError, PositionMismatchError
 from .front_optics import FrontOptics
-from .target_mapping import Mapping3D, PhysicalMapping, PolynomialMapping, polynomial_terms
+from .target_mapping import (CalibratedVolume, CameraKey, Mapping3D, MetricCalibration, PhysicalMapping,
+                             PolynomialMapping, polynomial_terms)
 
 #: Soloff et al. used cubic terms across the image and quadratic ones in depth.
 LATERAL_DEGREE = 3
@@ -35,6 +36,8 @@ NOISE_FLOOR = 0.25
 #: the target's distance).
 _POWER_STARTS = (0.0, 1 / 600, 1 / 300, 1 / 175, 1 / 120, -1 / 300)
 _DISTANCE_STARTS = (0.15, 0.45)
+#: The starting points are compared on about this many dots.
+_START_DOTS = 150
 
 
 @dataclass(frozen=True)
@@ -156,6 +159,22 @@ def fit_physical(obs: TargetObservations, lens: MainLens, *, start: PhysicalMapp
     front_guess : FrontOptics, optional
         An auxiliary lens the user knows of, tried first among the starting points.
     """
+    if start is not None:
+        return _least_squares(obs, lens, [_vector(start)])
+    distance = float(np.median(obs.world_mm[:, 2]))
+    candidates = [(p, f * distance) for p in _POWER_STARTS for f in _DISTANCE_STARTS]
+    if front_guess is not None:
+        candidates.insert(0, (front_guess.aux_power_per_mm, front_guess.aux_distance_mm))
+    starts = [s for s in (_frame_start(obs, lens, p, d) for p, d in candidates) if s is not None]
+    if not starts:
+        starts = [np.zeros(12)]
+    # The many starting points on every few dots; the best of them on all of them.
+    thin = obs.take(np.arange(0, len(obs), max(1, len(obs) // _START_DOTS)))
+    return _least_squares(obs, lens, [_vector(_least_squares(thin, lens, starts))])
+
+
+def _least_squares(obs: TargetObservations, lens: MainLens, starts: list[np.ndarray]) -> PhysicalMapping:
+    """The best of least-squares fits from each of ``starts``, weighted by the dots' noise."""
     w = obs.weights() / np.median(obs.weights(), axis=0)
 
     def residual(params: np.ndarray) -> np.ndarray:
@@ -165,19 +184,9 @@ def fit_physical(obs: TargetObservations, lens: MainLens, *, start: PhysicalMapp
             return np.full(3 * len(obs), 1e3)
         return (np.nan_to_num(pred - obs.world_mm, nan=1e3, posinf=1e3, neginf=-1e3) * w).ravel()
 
-    if start is not None:
-        starts = [_vector(start)]
-    else:
-        distance = float(np.median(obs.world_mm[:, 2]))
-        candidates = [(p, f * distance) for p in _POWER_STARTS for f in _DISTANCE_STARTS]
-        if front_guess is not None:
-            candidates.insert(0, (front_guess.aux_power_per_mm, front_guess.aux_distance_mm))
-        starts = [s for s in (_frame_start(obs, lens, p, d) for p, d in candidates) if s is not None]
-        if not starts:
-            starts = [np.zeros(12)]
     best = None
     for params in starts:
-        sol = least_squares(residual, params, x_scale="jac", max_nfev=400, method="trf")
+        sol = least_squares(residual, params, x_scale="jac", max_nfev=400, method="lm")
         if best is None or sol.cost < best.cost:
             best = sol
     return _physical(best.x, lens)
@@ -297,3 +306,18 @@ def fit_target_mapping(obs: TargetObservations, lens: MainLens | None, *, front_
               "field_of_view_mm": float(np.ptp(obs.world_mm[:, 0])) if len(obs) else math.nan,
               "depth_range_mm": float(np.ptp(obs.positions_mm))}
     return best, fitted, report
+
+
+def metric_calibration(obs: TargetObservations, lens: MainLens | None, camera: CameraKey, *, margin_mm: float,
+                       front_guess: FrontOptics | None = None, white_sha1: str | None = None,
+                       created_utc: str = "") -> MetricCalibration:
+    """The :class:`MetricCalibration` of a target's observations: the better mapping
+    (:func:`fit_target_mapping`), the volume the dots covered (widened by ``margin_mm``), the report."""
+    best, fitted, report = fit_target_mapping(obs, lens, front_guess=front_guess)
+    world = obs.world_mm
+    volume = CalibratedVolume(x_mm=(float(world[:, 0].min()), float(world[:, 0].max())),
+                              y_mm=(float(world[:, 1].min()), float(world[:, 1].max())),
+                              z_mm=(float(world[:, 2].min()), float(world[:, 2].max())),
+                              alpha=(float(obs.alpha.min()), float(obs.alpha.max())), margin_mm=float(margin_mm))
+    return MetricCalibration(mapping=best, camera=camera, volume=volume, alternatives=fitted, report=report,
+                             white_sha1=white_sha1, created_utc=created_utc)

@@ -30,9 +30,9 @@ from analysis.calibration.calibrate import Calibration
 from analysis.calibration.metric_files import camera_key
 from analysis.camera.dot_grid import DotGrid, align_grids, identify_grid
 from analysis.camera.front_optics import FrontOptics, sensor_reference_tan
-from analysis.camera.mapping_fit import MainLens, TargetObservations, fit_target_mapping
+from analysis.camera.mapping_fit import MainLens, TargetObservations, metric_calibration
 from analysis.camera.model import CameraModel
-from analysis.camera.target_mapping import CalibratedVolume, MetricCalibration
+from analysis.camera.target_mapping import MetricCalibration
 from analysis.errors import CameraMismatchError, PositionMismatchError, TargetOutOfRangeError
 from analysis.formats.exposure import Exposure, read_exposure
 
@@ -195,24 +195,18 @@ def calibrate_target(exposures: Sequence[Exposure | str | Path], calibration: Ca
     obs = _observations([found[k] for k in order], aligned, pitch_mm)
     model = CameraModel.from_metadata(first.metadata)
     lens = _main_lens(model)
-    best, fitted, report = fit_target_mapping(obs, lens, front_guess=front_guess)
-    margin = 0.5 * pitch_mm
-    volume = CalibratedVolume(
-        x_mm=(float(obs.world_mm[:, 0].min()), float(obs.world_mm[:, 0].max())),
-        y_mm=(float(obs.world_mm[:, 1].min()), float(obs.world_mm[:, 1].max())),
-        z_mm=(float(positions.min()), float(positions.max())),
-        alpha=(float(obs.alpha.min()), float(obs.alpha.max())), margin_mm=margin)
-    report["target"] = {
+    cal0 = calibration(first) if callable(calibration) else calibration
+    metric = metric_calibration(obs, lens, key, margin_mm=0.5 * pitch_mm, front_guess=front_guess,
+                                white_sha1=cal0.white_sha1,
+                                created_utc=dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"))
+    metric.report["target"] = {
         "pitch_mm": float(pitch_mm), "positions_mm": positions.tolist(), "pipeline": params.to_dict(),
         "exposures": [{"name": d.name, "sha1": d.sha1, "position_mm": d.position_mm, "dots_found": int(d.sx_m.size),
                        "dots_on_grid": len(g), "rows": [int(g.rows.min()), int(g.rows.max())],
                        "cols": [int(g.cols.min()), int(g.cols.max())], "median_alpha": float(np.median(d.alpha)),
                        "warnings": list(d.warnings)}
                       for d, g in zip([found[k] for k in order], aligned)]}
-    cal0 = calibration(first) if callable(calibration) else calibration
-    return MetricCalibration(mapping=best, camera=key, volume=volume, alternatives=fitted, report=report,
-                             white_sha1=cal0.white_sha1,
-                             created_utc=dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"))
+    return metric
 
 
 def _check_depth_order(found: list[TargetDots]) -> None:
