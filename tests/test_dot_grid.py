@@ -81,6 +81,20 @@ def test_exposures_at_several_positions_are_labelled_alike_when_another_dot_beco
     assert len(offsets) == 1, offsets
 
 
+def test_a_dot_missed_on_the_axis_in_one_exposure_does_not_move_the_origin():
+    points, grids, truth = [], [], []
+    for k, scale in enumerate((1.0, 1.05, 1.1)):
+        pts, rows, cols = _plate(offset=(0.05, -0.04), scale=scale, noise=0.01, seed=k)
+        if k == 0:  # the dot on the axis is lost in the first exposure
+            keep = ~((rows == 0) & (cols == 0))
+            pts, rows, cols = pts[keep], rows[keep], cols[keep]
+        points.append(pts)
+        grids.append(identify_grid(pts))
+        truth.append((rows, cols))
+    for g, (rows, cols) in zip(align_grids(points, grids), truth):
+        assert np.array_equal(g.rows, rows[g.index]) and np.array_equal(g.cols, cols[g.index])
+
+
 def test_too_few_dots_and_no_grid_are_errors_that_say_what_to_do():
     pts, _, _ = _plate(half=1)
     with pytest.raises(TooFewDotsError, match="too few"):

@@ -255,7 +255,8 @@ def align_grids(points: list[np.ndarray], grids: list[DotGrid], *, axis: tuple[f
 
     Each grid after the first is shifted by the whole rows and columns that best match its dots to
     the previous exposure's, scaled about the axis by the ratio of their spacings (the
-    magnification changes with depth).
+    magnification changes with depth). Then row 0, column 0 is the dot that lies nearest the axis
+    where any does (in spacings): a dot the pipeline missed in one exposure does not move the origin.
 
     Parameters
     ----------
@@ -292,4 +293,10 @@ def align_grids(points: list[np.ndarray], grids: list[DotGrid], *, axis: tuple[f
                 f"{best_cost / cur.spacing:.2f} spacings off): move the target along the camera's axis between "
                 "positions, without turning it")
         out.append(cur.shifted(*best))
-    return out
+    nearest = []
+    for pts, grid in zip(points, out):
+        d = np.hypot(*(pts[grid.index] - centre).T) / grid.spacing
+        i = int(np.argmin(d))
+        nearest.append((float(d[i]), int(grid.rows[i]), int(grid.cols[i])))
+    _, row0, col0 = min(nearest)
+    return [grid.shifted(-row0, -col0) for grid in out]

@@ -15,8 +15,11 @@ Output:
 ``--save-stack`` also writes the refocused images, the sub-aperture image and the brightness
 curves as HDF5 (into the ``.h5`` output, or into ``<out>.stack.h5`` beside a CSV).
 
-A JSON summary (one object per exposure: name, frame, particles, warnings, seconds) goes to
-stdout. Exit status: 0 when every exposure was processed, 1 when some failed (each named
+``--metric-calibration`` takes ``X, Y, Z`` from a target calibration (``plenodust
+calibrate-target``): a file, or a folder from which each exposure's camera, zoom and focus picks one.
+
+A JSON summary (one object per exposure: name, frame, particles, warnings, seconds, and which
+calibration gave ``X, Y, Z``) goes to stdout. Exit status: 0 when every exposure was processed, 1 when some failed (each named
 on stderr), 2 for unusable arguments.
 """
 
@@ -241,7 +244,9 @@ def run(args: argparse.Namespace) -> int:
             entry["frame"] = len(results)
             results.append(result)
         entry.update(particles=len(result), warnings=result.warnings,
-                     seconds=round(result.timings.get("total", float("nan")), 4))
+                     seconds=round(result.timings.get("total", float("nan")), 4),
+                     coordinates={k: result.coordinates[k] for k in ("kind", "model", "sha1")
+                                  if k in result.coordinates})
         summary.append(entry)
         if to_folder:
             result.stack = result.subaperture = None  # keep memory to one exposure
