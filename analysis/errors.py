@@ -49,3 +49,27 @@ class CameraMismatchError(AnalysisError):
 
 class ParameterError(AnalysisError, ValueError):
     """A pipeline or simulator parameter is out of its valid range."""
+
+
+class TargetError(AnalysisError):
+    """A calibration target's exposures cannot give a metric calibration."""
+
+
+class TooFewDotsError(TargetError):
+    """Too few of a target's dots were found in an exposure."""
+
+
+class GridIdentificationError(TargetError):
+    """A target's dots do not form one identifiable regular grid."""
+
+
+class PositionMismatchError(TargetError, ValueError):
+    """The stage positions given do not match the target's exposures."""
+
+
+class TargetOutOfRangeError(TargetError):
+    """A target position lies outside the range the camera can refocus to."""
+
+
+class MetricCalibrationError(CalibrationError):
+    """A metric (target) calibration file is unreadable or does not fit the exposure's camera."""

@@ -30,9 +30,11 @@ from service.limits import BodySizeLimit, UrlLengthLimit
 from service.metrics import Metrics
 from service.problems import install_problem_handlers
 from service.queue import JobQueue
-from service.routes import calibrations, camera as camera_routes, events, exposures, health, jobs, runs
+from service.routes import (calibrations, camera as camera_routes, events, exposures, health, jobs,
+                            metric_calibrations, runs)
 from service.runner import JobRunner, RunnerConfig
 from service.settings import Settings, get_settings
+from service.metric_calibrations import adopt as adopt_metric
 from service.store import Store
 from service.watcher import CameraWatcher, open_camera
 
@@ -101,6 +103,11 @@ def create_app(settings: Settings | None = None, *, camera: Any = None, store: S
                                           poll_s=settings.camera_poll_s,
                                           pull_existing=settings.camera_pull_existing)
         app.state.service = state
+        if settings.metric_calibration is not None:
+            # A calibration given at start joins (or replaces) the service's own for its camera and setting.
+            data = await asyncio.to_thread(Path(settings.metric_calibration).read_bytes)
+            adopted, _ = await asyncio.to_thread(adopt_metric, the_store.metric_dir, data)
+            log.info("target calibration of %s from %s", adopted.camera.describe(), settings.metric_calibration)
         # Jobs whose process died with the last server go back to the queue now.
         for job in await asyncio.to_thread(queue.requeue_expired):
             log.info("job %s back to %s after restart", job.id, job.state)
@@ -150,7 +157,7 @@ def create_app(settings: Settings | None = None, *, camera: Any = None, store: S
     app.add_middleware(BodySizeLimit, limit=settings.max_body_bytes,
                        by_path={"/api/v1/calibrations": settings.max_calibration_bytes})
     app.add_middleware(UrlLengthLimit)
-    for module in (exposures, jobs, runs, events, camera_routes, calibrations, health):
+    for module in (exposures, jobs, runs, events, camera_routes, metric_calibrations, calibrations, health):
         app.include_router(module.router)
 
     # Routes under /static/ come before the /static mount, which would take their paths.

@@ -5,7 +5,7 @@ Split by resource like the routes. Field names are the JSON keys; times are Unix
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
@@ -79,6 +79,9 @@ class ExposureInfo(BaseModel):
     slice_binning: int = Field(description="output-image pixels per slice pixel along each axis")
     warnings: list[str]
     timings: dict[str, float] = Field(description="seconds per pipeline stage")
+    coordinates: dict[str, Any] | None = Field(
+        None, description="the physical calibration X, Y, Z came from: kind 'target' (with the calibration's "
+                          "sha1, model and volume) or 'thin-lens' (the metadata's fallback)")
 
 
 class ParticleTable(BaseModel):
@@ -180,6 +183,27 @@ class CalibrationUploaded(BaseModel):
     white_images: int
     jobs_retried: list[str] = Field(description="jobs that had failed for want of this camera's white images, "
                                                 "queued again")
+
+
+class MetricCalibrationInfo(BaseModel):
+    """A stored target calibration (``plenodust calibrate-target``)."""
+
+    serial: str | None
+    zoom_step: int | None
+    focus_step: int | None
+    model: Literal["physical", "polynomial"] = Field(description="the mapping used: the one that predicted "
+                                                                 "held-back target positions best")
+    mapping: str
+    sha1: str | None = Field(description="SHA-1 of the file; results record it")
+    created_utc: str
+    file: str
+    held_out_rms_um: dict[str, float] | None = Field(
+        None, description="RMS error on held-back stage positions per axis (X, Y, Z, 3d), micrometres")
+    volume: dict[str, Any] = Field(description="what the target covered (target frame, mm; alpha)")
+
+
+class MetricCalibrationList(BaseModel):
+    items: list[MetricCalibrationInfo]
 
 
 class Health(BaseModel):

@@ -49,6 +49,16 @@ def _calibration(calibration_dir: str | None, cache_dir: str | None, metadata: d
     return load_calibration(calibration_dir, metadata, serial=serial, cache_dir=cache_dir)
 
 
+def _coordinates(metric_dir: str | None, metadata: dict, serial: str | None):
+    """The exposure's target calibration from the service's folder of them; None (the metadata's thin
+    lens) while the folder holds none."""
+    from analysis.calibration.metric_files import coordinates_for
+
+    if metric_dir is None or not any(Path(metric_dir).glob("*/*.json")):
+        return None
+    return coordinates_for(metric_dir, metadata, serial=serial)
+
+
 def _params(parameters: dict | None):
     from analysis.pipeline.params import PipelineParams
 
@@ -101,8 +111,9 @@ def run_task(task: JobTask, progress: Callable[[float, str], None] | None = None
     cache_dir = Path(task.calibration_cache_dir) if task.calibration_cache_dir else None
     # progress(fraction, stage): the fraction weighted by the stages' cost, and the stage's name.
     report = progress
+    coordinates = _coordinates(task.metric_calibration_dir, exposure.metadata, exposure.serial)
     result = process(exposure, calibration, params, keep_stack=task.keep_slices, progress=report,
-                     cache=_worker_cache(cache_dir))
+                     cache=_worker_cache(cache_dir), coordinates=coordinates)
     output = JobOutput(columns={name: np.asarray(col) for name, col in result.particles.items()},
                        parameters=result.params.to_dict(), rejected=dict(result.rejected))
     provenance = result.metadata()

@@ -21,6 +21,8 @@ class JobTask:
         Folder of white images for the exposure's camera.
     calibration_cache_dir : str or None
         Where the calibration may be cached between jobs.
+    metric_calibration_dir : str or None
+        Folder of target calibrations; the one of the exposure's camera, zoom and focus gives X, Y, Z.
     parameters : dict or None
         Pipeline parameters (fields of ``PipelineParams``); None for the defaults.
     keep_slices : bool
@@ -31,6 +33,7 @@ class JobTask:
     raw_paths: tuple[str, ...]
     calibration_dir: str | None = None
     calibration_cache_dir: str | None = None
+    metric_calibration_dir: str | None = None
     parameters: dict | None = None
     keep_slices: bool = False
 

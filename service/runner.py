@@ -198,6 +198,7 @@ class JobRunner:
                        raw_paths=tuple(str(p) for p in self.store.raw_paths(record.id, record.kind)),
                        calibration_dir=str(calibration) if calibration else None,
                        calibration_cache_dir=str(self.store.cache_dir),
+                       metric_calibration_dir=str(self.store.metric_dir),
                        parameters=self.config.parameters or None,
                        keep_slices=self.config.keep_slices)
 

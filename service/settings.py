@@ -35,6 +35,9 @@ class Settings(BaseSettings):
         (507) and is not ready.
     raw_retention : int
         Keep the raw files of only the newest N exposures (0, the default: keep all).
+    metric_calibration : Path or None
+        A target calibration file (``plenodust calibrate-target``) added to the service's own at
+        start; more can be uploaded (``POST /api/v1/calibrations/metric``).
     """
 
     model_config = SettingsConfigDict(env_prefix="PLENODUST_", extra="ignore")
@@ -72,6 +75,7 @@ class Settings(BaseSettings):
     # is done) lose them and keep their particle tables. 0 keeps every raw file (the default:
     # a lab's exposures are precious).
     raw_retention: int = Field(0, ge=0)
+    metric_calibration: Path | None = None
     warm_up: bool = True
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 

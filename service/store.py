@@ -9,6 +9,7 @@ Layout::
     DATA/runs/<run>.nxs                   every exposure of a run (NeXus: NXentry/NXdata),
                                           grown by appending (see service.run_file)
     DATA/calibrations/<serial>/MOD_*      white images per camera
+    DATA/metric-calibrations/<serial>/    target calibrations per camera, zoom and focus (JSON)
     DATA/cache/                           calibration cache
 
 Every file but a run file is written to a temporary name and renamed into place, so a crash
@@ -77,7 +78,9 @@ class Store:
         self.runs_dir = self.data_dir / "runs"
         self.calibrations_dir = self.data_dir / "calibrations"
         self.cache_dir = self.data_dir / "cache"
-        for folder in (self.raw_dir, self.results_dir, self.runs_dir, self.calibrations_dir, self.cache_dir):
+        self.metric_dir = self.data_dir / "metric-calibrations"  # service.metric_calibrations
+        for folder in (self.raw_dir, self.results_dir, self.runs_dir, self.calibrations_dir, self.cache_dir,
+                       self.metric_dir):
             folder.mkdir(parents=True, exist_ok=True)
         # One writer per run file at a time within this process.
         self._run_locks: dict[str, threading.Lock] = {}

@@ -11,6 +11,8 @@
   map, micro-image profile; the defect map joins it) from one white image.
 - ``cache``: calibrations kept on disk by camera serial and white SHA-1, and
   ``load_calibration``, the one call a picture needs.
+- ``metric_files``: target (metric) calibrations as JSON files, picked per camera, zoom and focus
+  like the white images; the thin-lens fallback where none fits.
 
 Hands a Calibration to :mod:`analysis.lightfield` (its look-up table) and :mod:`analysis.pipeline`.
 """

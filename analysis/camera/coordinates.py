@@ -6,6 +6,9 @@ toward the scene, ``X`` right and ``Y`` down in the upright output image). Two w
 * :class:`ThinLensCalibration` - the thin-lens model of the metadata: a point at ``(X, Y, Z)``
   is sharpest at ``alpha = Fp / P`` at lens-plane position ``(X, Y) * P / Z``, so
   ``Z = 1 / (1/f - 1/(alpha P))`` and ``(X, Y) = s * Z / P``.
+* :class:`~analysis.camera.target_mapping.MetricCalibration` - fitted to a dot target imaged at
+  several stage positions (``plenodust calibrate-target``): the calibration for a real set-up,
+  auxiliary lenses and distortion included; ``X, Y, Z`` in the target's frame.
 * :class:`UserCalibration` - two numbers a user measures (object-space pixel size at a reference
   plane and depth per unit alpha), or :func:`fit_tilted_layer` to a flat layer tilted at a known
   angle, as in the paper's 13 degree check. Real F01 zoom lenses and added optics do not follow
@@ -26,16 +29,24 @@ from scipy.spatial import cKDTree
 from .model import Optics
 from analysis.errors import ParameterError
 from .image_grid import ImageGrid
+from .target_mapping import MetricCalibration
 
 
 @dataclass(frozen=True)
 class ThinLensCalibration:
-    """Depth and scale from the thin main lens of the metadata (docs/camera-model.md)."""
+    """Depth and scale from the thin main lens of the metadata (docs/camera-model.md).
+
+    The fallback: real zoom lenses and added optics do not follow it. ``fallback_reason`` says why
+    it stands in for a target calibration that was looked for (a warning in the result).
+    """
 
     optics: Optics
+    fallback_reason: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        return {"kind": "thin-lens", **{f"optics.{k}": v for k, v in asdict(self.optics).items()}}
+        return {"kind": "thin-lens", **{f"optics.{k}": v for k, v in asdict(self.optics).items()},
+                "note": "the metadata's thin-lens model, not a target calibration: real set-ups need one "
+                        "(plenodust calibrate-target)" + (f"; {self.fallback_reason}" if self.fallback_reason else "")}
 
 
 @dataclass(frozen=True)
@@ -78,7 +89,7 @@ class UserCalibration:
         return {"kind": "user", **asdict(self)}
 
 
-Calibration3D = Union[ThinLensCalibration, UserCalibration]
+Calibration3D = Union[ThinLensCalibration, UserCalibration, MetricCalibration]
 
 
 def to_physical(x_px: np.ndarray, y_px: np.ndarray, alpha: np.ndarray, grid: ImageGrid,
@@ -94,7 +105,7 @@ def to_physical(x_px: np.ndarray, y_px: np.ndarray, alpha: np.ndarray, grid: Ima
         Refocus parameter of each particle.
     grid : ImageGrid
         The grid of the refocused images.
-    calibration : ThinLensCalibration or UserCalibration
+    calibration : ThinLensCalibration, UserCalibration or MetricCalibration
 
     Returns
     -------
@@ -119,8 +130,23 @@ def to_physical(x_px: np.ndarray, y_px: np.ndarray, alpha: np.ndarray, grid: Ima
         cy = (grid.height - 1) / 2 if math.isnan(calibration.centre_y_px) else calibration.centre_y_px
         z = calibration.reference_z_mm + (alpha - calibration.reference_alpha) * calibration.depth_per_alpha_mm
         return (x_px - cx) * calibration.pixel_size_mm, (y_px - cy) * calibration.pixel_size_mm, z
+    if isinstance(calibration, MetricCalibration):
+        sx, sy = grid.to_lens_plane(x_px, y_px)
+        return calibration.to_physical(sx, sy, alpha)
     raise ParameterError(f"unknown calibration type {type(calibration).__name__}; "
-                         "use ThinLensCalibration or UserCalibration")
+                         "use ThinLensCalibration, UserCalibration or MetricCalibration")
+
+
+def coordinate_warnings(x_mm: np.ndarray, y_mm: np.ndarray, z_mm: np.ndarray,
+                        calibration: Calibration3D) -> list[str]:
+    """What a user should know about the physical coordinates: particles outside a target
+    calibration's volume, or a thin-lens fallback where a target calibration was looked for."""
+    if isinstance(calibration, MetricCalibration):
+        warning = calibration.volume_warning(x_mm, y_mm, z_mm) if np.size(x_mm) else None
+        return [] if warning is None else [warning]
+    if isinstance(calibration, ThinLensCalibration) and calibration.fallback_reason:
+        return [f"X, Y, Z come from the metadata's thin-lens model: {calibration.fallback_reason}"]
+    return []
 
 
 def fit_tilted_layer(x_px: np.ndarray, y_px: np.ndarray, alpha: np.ndarray, *, tilt_deg: float,

@@ -6,6 +6,8 @@
 - ``stages``: timing and cost-weighted progress of the stages.
 - ``process``: :func:`~analysis.pipeline.process.process` and ``process_many``.
 - ``result``: :class:`~analysis.pipeline.result.Result`, the particle table with its provenance.
+- ``target``: a metric calibration from a dot target at known stage positions (its dots found with
+  ``process``, its grid identified, a mapping fitted: :func:`~analysis.pipeline.target.calibrate_target`).
 
 The caller owns the :class:`analysis.cache.Cache` that a batch shares.
 """

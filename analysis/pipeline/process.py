@@ -47,7 +47,7 @@ import numpy as np
 from analysis.cache import Cache
 from analysis.calibration.calibrate import Calibration
 from analysis.calibration.drift import LatticeDrift, block_phases, estimate_drift
-from analysis.camera.coordinates import Calibration3D, ThinLensCalibration, to_physical
+from analysis.camera.coordinates import Calibration3D, ThinLensCalibration, coordinate_warnings, to_physical
 from analysis.camera.image_grid import ImageGrid
 from analysis.camera.model import CameraModel
 from analysis.depth.deblend import deblend, split_shared
@@ -100,8 +100,9 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     progress : callable ``(fraction, stage)``, optional
         Called as each stage starts (fraction of the work done, weighted by the stages' typical
         cost, and the stage's name) and once with ``(1.0, "done")``.
-    coordinates : ThinLensCalibration or UserCalibration, optional
-        Physical calibration; default: the user calibration in ``params`` if set, else the thin
+    coordinates : ThinLensCalibration, UserCalibration or MetricCalibration, optional
+        Physical calibration (a target calibration: :func:`analysis.calibration.metric_files.coordinates_for`);
+        default: the user calibration in ``params`` if set, else the thin
         lens of the exposure's metadata (X, Y, Z are NaN, with a warning, when the metadata has
         no usable exit-pupil distance).
     cache : Cache, optional
@@ -332,6 +333,7 @@ def _particle_table(peaks: Peaks, tracks: Tracks | None, alphas: np.ndarray, tab
     quality = {name: np.asarray(v, float)[order] for name, v in (quality or {}).items()}
     fit = None if fit is None else fit.take(order)
     X, Y, Z = _physical(peaks.x, peaks.y, peaks.alpha, table.grid, coordinates)
+    warnings.extend(coordinate_warnings(X, Y, Z, coordinates))
     if n and not np.isfinite(Z).any():
         warnings.append("no physical coordinates: the metadata give no usable exit-pupil distance; "
                         "give a user calibration (pixel size and depth per alpha)")

@@ -2,6 +2,8 @@
 
 - ``camera``: the simulated lens and its metadata.
 - ``scenarios``: particle scenes (tilted layer, shadowing pairs, ball, cloud), as designed or varied.
+- ``target``: a calibration target, a plate of dots at several stage positions, and the simulated
+  camera's front optics (an auxiliary lens, distortion: :mod:`analysis.camera.front_optics`).
 - ``render``: white images and exposures rendered by ray tracing; ``kernels`` holds its numba kernels.
 - ``scenario_files``: scenario folders written as the camera writes them, with their truth.
 - ``realism``: what a real F01 in a chamber adds (the ``Realism`` parameters, a typical preset);

@@ -11,13 +11,14 @@ import csv
 import io
 import json
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from analysis.camera.front_optics import FrontOptics
 from analysis.camera.model import CameraModel
 from analysis.errors import ParameterError
 from analysis.formats.atomic_write import write_atomic
@@ -31,7 +32,8 @@ from .chamber import ChamberLight
 from .realism import Realism
 from .render import (BLUR_SIGMA_PX, ParticleTruth, channel_response_map, in_view, particle_truth, read_out,
     render_exposure, white_coverage)
-from .scenarios import Particles, make_scenario
+from .scenarios import Particles, Scenario, make_scenario
+from .target import TARGET, DotTarget, default_target, target_sidecar
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +90,7 @@ class SimulationFiles:
     truth: list[Path] = field(default_factory=list)
     whites: list[Path] = field(default_factory=list)
     scenario_json: Path | None = None
+    target_json: Path | None = None
 
     @property
     def calibration_dir(self) -> Path:
@@ -119,7 +122,8 @@ def mean_nn_distance_mm(particles: Particles) -> float:
 def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count: int = 1, size: int = F01_SIZE,
                    brightness_dn: float = 1800.0, background_dn: float = 40.0, serial: str = DEFAULT_SERIAL,
                    centre_z_mm: float | None = None, realism: Realism | None = None,
-                   progress: Callable[[str], None] | None = None) -> SimulationFiles:
+                   progress: Callable[[str], None] | None = None, front_optics: FrontOptics | None = None,
+                   target: DotTarget | None = None) -> SimulationFiles:
     """Simulate a scenario and write it as the camera's files, with its truth.
 
     Writes ``IMG_nnnn.lfp``, ``IMG_nnnn.RAW`` + ``.TXT`` and ``IMG_nnnn.truth.csv`` for each of
@@ -130,7 +134,9 @@ def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count:
     ----------
     out_dir : path
         Folder to write into (created).
-    scenario_name : {"tilted-layer", "shadowing", "ball", "cloud"}
+    scenario_name : {"tilted-layer", "shadowing", "ball", "cloud", "target"}
+        ``target``: a plate of dots (``target``, default :func:`default_target`), one exposure per
+        stage position (``count`` is ignored), the positions in ``target.json``.
     seed : int
         Same seed, same bytes.
     count : int
@@ -154,6 +160,11 @@ def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count:
         ``scenario.json`` under ``realism``.
     progress : callable, optional
         Called with a line of text before each long step.
+    front_optics : FrontOptics, optional
+        An auxiliary lens in front of the camera and the main lens's distortion: everything is
+        rendered where the main lens sees it; the truth keeps the true ``X, Y, Z`` (its ``alpha``,
+        ``x, y`` and blur are the apparent position's). By default the cluster (or target) is
+        placed where the camera focuses through it.
 
     Returns
     -------
@@ -169,9 +180,19 @@ def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count:
     private = simulated_private_metadata(serial)
     realism = Realism() if realism is None else realism
     on = set(realism.effects_on())
-    scenario = make_scenario(scenario_name, seed, brightness_dn=brightness_dn, background_dn=background_dn,
-                             centre_z_mm=centre_z_mm, varied=realism.varied_scene,
-                             brightness_spread=realism.brightness_spread or None)
+    front = None if front_optics is None or front_optics.is_identity else front_optics
+    if scenario_name == TARGET:
+        target = target or default_target(front, brightness_dn=brightness_dn)
+        count = len(target.positions_mm)
+        scenario = Scenario(TARGET, int(seed), target.particles(target.positions_mm[0], np.random.default_rng(seed)),
+                            background_dn, {"target": target.to_dict()})
+    else:
+        if centre_z_mm is None and front is not None:
+            nominal = DEFAULT_LENS.focus_distance_mm - (2.6 if scenario_name == "cloud" else 0.0)
+            centre_z_mm = round(front.object_distance_mm(nominal), 3)
+        scenario = make_scenario(scenario_name, seed, brightness_dn=brightness_dn, background_dn=background_dn,
+                                 centre_z_mm=centre_z_mm, varied=realism.varied_scene,
+                                 brightness_spread=realism.brightness_spread or None)
     metadata = simulated_camera_metadata(lens=DEFAULT_LENS, size=size)
     model = CameraModel.from_metadata(metadata)
     camera = CameraEffects.build(realism, serial=serial) if on & set(CAMERA_EFFECTS) else None
@@ -181,12 +202,17 @@ def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count:
     for k in range(1, count + 1):
         frame_rng = np.random.default_rng([seed, k])
         current = scenario if k == 1 else scenario.jittered(frame_rng)
-        truth = particle_truth(model, current.particles)
+        if target is not None:
+            current = replace(scenario, particles=target.particles(target.positions_mm[k - 1], frame_rng))
+        seen = current.particles if front is None else Particles(
+            *front.apparent(current.particles.x_mm, current.particles.y_mm, current.particles.z_mm),
+            current.particles.brightness_dn)
+        truth = particle_truth(model, seen)
         keep = np.flatnonzero(in_view(model, truth))
         shown = current.particles.subset(keep)
         name = f"IMG_{k:04d}"
         say(f"{name}: rendering {len(shown)} of {len(current.particles)} particles on {size}x{size} px")
-        image = render_exposure(model, shown, seed=int(frame_rng.integers(2 ** 63)),
+        image = render_exposure(model, seen.subset(keep), seed=int(frame_rng.integers(2 ** 63)),
                                 background_dn=current.background_dn, camera=camera, chamber=chamber)
         minute, second = divmod((k - 1) % 3600, 60)  # one exposure per second from 09:00
         frame_meta = simulated_camera_metadata(lens=DEFAULT_LENS, size=size,
@@ -206,12 +232,16 @@ def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count:
                        "mean_nn_distance_mm": mean_nn_distance_mm(shown)})
     whites = _write_calibration(out / "calibration", seed=seed, size=size, private=private, say=say, camera=camera)
     files.whites.extend(whites["paths"])
+    if target is not None:
+        sidecar = target_sidecar(target, [f["name"] for f in frames], front)
+        files.target_json = write_atomic(out / "target.json", (json.dumps(sidecar, indent=2) + "\n").encode())
     doc = {
         "scenario": scenario.name, "seed": int(seed), "count": int(count), "size": int(size), "serial": serial,
         "particles": len(scenario.particles), "background_dn": scenario.background_dn,
         "brightness_dn": float(brightness_dn),
         "parameters": scenario.parameters,
         "optics": _optics_doc(model, DEFAULT_LENS),
+        "front_optics": None if front is None else front.to_dict(),
         "exposures": frames, "calibration": whites["doc"], "truth_columns": TRUTH_COLUMNS,
         "noise": {"electrons_per_dn": ELECTRONS_PER_DN, "read_noise_dn": READ_NOISE_DN,
                   "blur_sigma_px": BLUR_SIGMA_PX, "laser_532_response": LASER_532_RESPONSE},

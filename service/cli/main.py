@@ -26,6 +26,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("serve", "run the lab service"),
     "demo": ("demo", "run the service with a simulated camera that takes a shot every few seconds"),
     "calibrate": ("calibrate", "fit the micro-lens lattice to a camera's white images"),
+    "calibrate-target": ("calibrate_target_cmd", "metric calibration (X, Y, Z in mm) from a dot target at known "
+                                                 "stage positions"),
     "warm-up": ("warmup_cmd", "compile the analysis kernels into the numba cache (make setup runs it)"),
 }
 # Kept for callers that list the modules.

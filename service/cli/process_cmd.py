@@ -15,8 +15,11 @@ Output:
 ``--save-stack`` also writes the refocused images, the sub-aperture image and the brightness
 curves as HDF5 (into the ``.h5`` output, or into ``<out>.stack.h5`` beside a CSV).
 
-A JSON summary (one object per exposure: name, frame, particles, warnings, seconds) goes to
-stdout. Exit status: 0 when every exposure was processed, 1 when some failed (each named
+``--metric-calibration`` takes ``X, Y, Z`` from a target calibration (``plenodust
+calibrate-target``): a file, or a folder from which each exposure's camera, zoom and focus picks one.
+
+A JSON summary (one object per exposure: name, frame, particles, warnings, seconds, and which
+calibration gave ``X, Y, Z``) goes to stdout. Exit status: 0 when every exposure was processed, 1 when some failed (each named
 on stderr), 2 for unusable arguments.
 """
 
@@ -95,6 +98,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "for particles whose light falls in one micro-lens (their alpha_std stays wide)")
 
     g = p.add_argument_group("physical coordinates (default: the metadata's thin-lens model)")
+    g.add_argument("--metric-calibration", type=Path, default=None, metavar="FILE",
+                   help="a target calibration (plenodust calibrate-target), or a folder of them: the one of the "
+                        "exposure's camera, zoom and focus is used (none there: the thin lens, with a warning)")
     g.add_argument("--pixel-size-mm", type=float, default=None, help="object-space size of an output pixel")
     g.add_argument("--depth-per-alpha-mm", type=float, default=None, help="dZ/dalpha (negative for a normal lens)")
     g.add_argument("--reference-alpha", type=float, default=d.reference_alpha)
@@ -149,6 +155,25 @@ class _Calibrations:
         return self._loaded[key]
 
 
+class _Coordinates:
+    """The physical calibration of each exposure: its target calibration from ``--metric-calibration``
+    (picked once per camera and zoom/focus setting), else None (the pipeline's default)."""
+
+    def __init__(self, source: Path | None) -> None:
+        self.source = source
+        self._chosen: dict[tuple, Any] = {}
+
+    def __call__(self, exposure: Any) -> Any:
+        if self.source is None:
+            return None
+        from analysis.calibration.metric_files import camera_key, coordinates_for
+
+        key = camera_key(exposure.metadata, exposure.serial)
+        if key not in self._chosen:
+            self._chosen[key] = coordinates_for(self.source, exposure.metadata, serial=exposure.serial)
+        return self._chosen[key]
+
+
 def run(args: argparse.Namespace) -> int:
     from analysis.cache import Cache
     from analysis.formats.exposure import read_exposure
@@ -180,8 +205,17 @@ def run(args: argparse.Namespace) -> int:
     elif out.parent and not out.parent.exists():
         out.parent.mkdir(parents=True, exist_ok=True)
 
+    if args.metric_calibration is not None and (args.pixel_size_mm is not None or args.depth_per_alpha_mm is not None):
+        print("plenodust process: give --metric-calibration or a user calibration (--pixel-size-mm, "
+              "--depth-per-alpha-mm), not both", file=sys.stderr)
+        return EXIT_USAGE
+    if args.metric_calibration is not None and not args.metric_calibration.exists():
+        print(f"plenodust process: metric calibration {args.metric_calibration} does not exist; give the file "
+              "plenodust calibrate-target wrote, or a folder of them", file=sys.stderr)
+        return EXIT_USAGE
     cache_dir = None if args.no_cache else (args.cache or default_cache_dir())
     calibrations = _Calibrations(args.calibration, cache_dir)
+    coordinates = _Coordinates(args.metric_calibration)
     cache = Cache(directory=cache_dir)
     say = _Say(quiet=args.quiet)
     _load_kernels(say)
@@ -193,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
             exposure = read_exposure(path)
             report = _Progress(bar, say, index, len(files), path.name)
             result = process(exposure, calibrations(exposure), params, keep_stack=args.save_stack,
-                             progress=report, cache=cache)
+                             progress=report, cache=cache, coordinates=coordinates(exposure))
         except (AnalysisError, OSError) as exc:
             failed += 1
             message = getattr(exc, "strerror", None) if isinstance(exc, OSError) and not isinstance(
@@ -210,7 +244,9 @@ def run(args: argparse.Namespace) -> int:
             entry["frame"] = len(results)
             results.append(result)
         entry.update(particles=len(result), warnings=result.warnings,
-                     seconds=round(result.timings.get("total", float("nan")), 4))
+                     seconds=round(result.timings.get("total", float("nan")), 4),
+                     coordinates={k: result.coordinates[k] for k in ("kind", "model", "sha1")
+                                  if k in result.coordinates})
         summary.append(entry)
         if to_folder:
             result.stack = result.subaperture = None  # keep memory to one exposure

@@ -26,6 +26,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--run", default=None, metavar="NAME", help="run new shots are filed under")
     parser.add_argument("--queue-capacity", type=int, default=None, metavar="N",
                         help="jobs waiting or running before uploads get 503 (default 64)")
+    parser.add_argument("--metric-calibration", type=Path, default=None, metavar="FILE",
+                        help="a target calibration (plenodust calibrate-target) for X, Y, Z in mm; the service keeps "
+                             "it with those uploaded to /api/v1/calibrations/metric")
     parser.set_defaults(func=run)
 
 
@@ -35,7 +38,7 @@ def settings_from_args(args: argparse.Namespace):
 
     overrides = {"host": args.host, "port": args.port, "data_dir": args.data, "camera": args.camera,
                  "executor": args.executor, "workers": args.workers, "run": args.run,
-                 "queue_capacity": args.queue_capacity}
+                 "queue_capacity": args.queue_capacity, "metric_calibration": args.metric_calibration}
     return Settings(**{k: v for k, v in overrides.items() if v is not None})
 
 
@@ -80,5 +83,14 @@ def run(args: argparse.Namespace) -> int:
     except ParameterError as exc:
         print(f"plenodust serve: PLENODUST_PIPELINE: {exc}")
         return 2
+    if settings.metric_calibration is not None:
+        from analysis.calibration.metric_files import read_metric_calibration
+        from analysis.errors import MetricCalibrationError
+
+        try:
+            read_metric_calibration(settings.metric_calibration)
+        except (MetricCalibrationError, OSError) as exc:
+            print(f"plenodust serve: --metric-calibration: {exc}")
+            return 2
     return serve(settings, announce=f"plenodust: dashboard at http://{settings.host}:{settings.port}/ "
                                      f"(API docs at /docs), data in {settings.data_dir}")

@@ -13,6 +13,7 @@ from analysis.simulation.camera import F01_SIZE
 from analysis.simulation.realism import EFFECTS, Realism
 from analysis.simulation.scenario_files import write_scenario
 from analysis.simulation.scenarios import SCENARIO_NAMES
+from analysis.simulation.target import TARGET, DotTarget, default_target, simulated_front_optics
 
 _TYPICAL = Realism.typical()
 
@@ -23,9 +24,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Render a particle cluster through the simulated F01 and write it as the camera stores it: "
                     "DIR/IMG_nnnn.lfp, IMG_nnnn.RAW + .TXT, IMG_nnnn.truth.csv (X, Y, Z in mm), "
                     "DIR/calibration/MOD_nnnn.RAW + .TXT white images and DIR/scenario.json.")
-    parser.add_argument("--scenario", choices=SCENARIO_NAMES, default="tilted-layer",
+    parser.add_argument("--scenario", choices=(*SCENARIO_NAMES, TARGET), default="tilted-layer",
                         help="cluster to simulate (default: tilted-layer, the paper's 13-degree layer; cloud: 400 "
-                             "particles 2.6 mm in front of focus)")
+                             "particles 2.6 mm in front of focus; target: a dot plate at several stage positions, "
+                             "one exposure each, positions in DIR/target.json)")
     parser.add_argument("--seed", type=int, default=1, help="random seed; the same seed writes the same bytes")
     parser.add_argument("--out", type=Path, required=True, help="folder to write into (created)")
     parser.add_argument("--count", type=int, default=1,
@@ -44,8 +46,49 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="camera serial (default A202160042); seeds the camera's hot pixels and lens "
                              "transmission")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    add_optics_arguments(parser)
     add_realism_arguments(parser)
     parser.set_defaults(func=run)
+
+
+def add_optics_arguments(parser: argparse.ArgumentParser) -> None:
+    """The front optics (every scene) and the dot target's options."""
+    group = parser.add_argument_group(
+        "front optics", "An auxiliary lens in front of the camera and radial distortion of the main lens, which the "
+                        "metadata do not know (the paper's set-up: a 174 mm lens). Scenes are placed where the "
+                        "camera focuses through them; the truth keeps the true X, Y, Z.")
+    group.add_argument("--aux-lens-f", type=float, default=None, metavar="MM",
+                       help="focal length of an auxiliary thin lens in front of the camera (e.g. 174)")
+    group.add_argument("--aux-lens-distance", type=float, default=20.0, metavar="MM",
+                       help="its distance in front of the main lens (default 20)")
+    group.add_argument("--distortion", type=float, default=0.0, metavar="FRACTION",
+                       help="radial distortion of the main lens: fractional displacement at the sensor's corner "
+                            "(0.01 for 1 %%; negative: barrel)")
+    group = parser.add_argument_group("target (--scenario target)", "A plate of dots at several stage positions.")
+    group.add_argument("--positions", type=float, nargs="+", default=None, metavar="MM",
+                       help="stage positions: depth of the middle dot in each exposure (default: 5 across 8 mm "
+                            "about the focus)")
+    group.add_argument("--pitch", type=float, default=1.0, metavar="MM", help="dot pitch (default 1)")
+    group.add_argument("--extent", type=float, default=12.0, metavar="MM",
+                       help="side of the square the dots fill (default 12)")
+    group.add_argument("--tilt", type=float, default=0.0, metavar="DEG",
+                       help="tilt of the plate about its rows (default 0)")
+    group.add_argument("--rotation", type=float, default=0.0, metavar="DEG",
+                       help="turn of its rows about the optical axis (default 0)")
+    group.add_argument("--offset", type=float, nargs=2, default=(0.0, 0.0), metavar=("X_MM", "Y_MM"),
+                       help="lateral position of the middle dot (default 0 0: on the axis)")
+
+
+def optics_from_args(args: argparse.Namespace) -> tuple:
+    """The front optics and (for ``--scenario target``) the target the options ask for."""
+    front = simulated_front_optics(args.aux_lens_f, args.aux_lens_distance, distortion=args.distortion)
+    if args.scenario != TARGET:
+        return front, None
+    plate = dict(pitch_mm=args.pitch, extent_mm=args.extent, tilt_deg=args.tilt, rotation_deg=args.rotation,
+                 offset_mm=tuple(args.offset), brightness_dn=args.brightness)
+    if args.positions:
+        return front, DotTarget(positions_mm=tuple(args.positions), **plate)
+    return front, default_target(front, **plate)
 
 
 def add_realism_arguments(parser: argparse.ArgumentParser) -> None:
@@ -141,9 +184,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         realism = realism_from_args(args)
         serial = {} if args.serial is None else {"serial": args.serial}
+        front, target = optics_from_args(args)
         files = write_scenario(args.out, args.scenario, args.seed, count=args.count, size=args.size,
                                brightness_dn=args.brightness, background_dn=args.background,
-                               centre_z_mm=args.centre_z, realism=realism, progress=progress, **serial)
+                               centre_z_mm=args.centre_z, realism=realism, progress=progress,
+                               front_optics=front, target=target, **serial)
     except AnalysisError as exc:
         print(f"plenodust simulate: {exc}", file=sys.stderr)
         return 2

@@ -166,7 +166,8 @@ async def get_exposure(exposure_id: str, state: State) -> dict:
             "job": job.public() if job else None, "raw_kept": record.raw_kept, "slices": len(slice_alpha),
             "slice_alpha": slice_alpha, "slice_binning": binning,
             # What the pipeline wants a user to know (nothing found, saturation, ...) and its timings.
-            "warnings": provenance.get("warnings", []), "timings": provenance.get("timings", {})}
+            "warnings": provenance.get("warnings", []), "timings": provenance.get("timings", {}),
+            "coordinates": provenance.get("coordinates")}
 
 
 @router.get("/{exposure_id}/particles", summary="The particle table of one exposure",
