@@ -156,7 +156,8 @@ def add_velocities(df: pd.DataFrame, *, open_blur_pitches: float = 1.0) -> pd.Da
     return order_columns(df)
 
 
-def velocities(particle: np.ndarray, t: np.ndarray, xyz: np.ndarray, open_depth: np.ndarray | None = None) -> np.ndarray:
+def velocities(particle: np.ndarray, t: np.ndarray, xyz: np.ndarray, open_depth: np.ndarray | None = None, *,
+               with_dt: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Velocity of each row from its trajectory's neighbours in time.
 
     Parameters
@@ -168,14 +169,18 @@ def velocities(particle: np.ndarray, t: np.ndarray, xyz: np.ndarray, open_depth:
     open_depth : ndarray of bool, shape (n,), optional
         Rows whose depth is open: a ``vZ`` that would use one is NaN.
 
+    with_dt : bool
+        Also return the time apart (s) of the two positions each velocity is taken from (0: none).
+
     Returns
     -------
-    ndarray of shape (n, 3)
+    ndarray of shape (n, 3), and ndarray of shape (n,) with ``with_dt``
     """
     n = len(particle)
     out = np.full((n, 3), np.nan)
+    out_dt = np.zeros(n)
     if n == 0:
-        return out
+        return (out, out_dt) if with_dt else out
     open_depth = np.zeros(n, bool) if open_depth is None else np.asarray(open_depth, bool)
     order = np.lexsort((t, particle))
     p, tt, r, op = particle[order], t[order], xyz[order], open_depth[order]
@@ -189,7 +194,8 @@ def velocities(particle: np.ndarray, t: np.ndarray, xyz: np.ndarray, open_depth:
     v[ok] = (r[nxt[ok]] - r[prev[ok]]) / dt[ok, None]
     v[op[prev] | op[nxt], 2] = np.nan
     out[order] = v
-    return out
+    out_dt[order] = dt
+    return (out, out_dt) if with_dt else out
 
 
 def order_columns(df: pd.DataFrame) -> pd.DataFrame:
