@@ -125,8 +125,9 @@ def summarize(linked: pd.DataFrame, *, mass_kg: float | None = None, lags: int =
 def _columns(rows: list[dict[str, Any]]) -> dict[str, np.ndarray]:
     """Rows as columns; a shell column a frame lacks is NaN there."""
     names = list(dict.fromkeys(name for row in rows for name in row))
+    suffixes = ["r_mm", "r_err_mm", "n", "n_err"]
     shell_names = sorted((n for n in names if n.startswith("shell") and n != "shells"),
-                         key=lambda n: (int(n[5:].split("_")[0]), n))
+                         key=lambda n: (int(n[5:].split("_")[0]), suffixes.index(n.split("_", 1)[1])))
     names = [n for n in names if n not in shell_names] + shell_names
     out = {}
     for name in names:

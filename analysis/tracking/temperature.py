@@ -244,5 +244,6 @@ def shot_temperature(xyz: np.ndarray, velocity: np.ndarray, dt_s: np.ndarray, no
                       + (np.mean(4 * sigma[None, :] * sigma_err[None, :] / dt[:, None] ** 2, axis=0)) ** 2)
     factor = ev_per_mm2_s2(mass_kg)
     rms = np.sqrt(np.maximum(true_var, 0.0))
-    rms_err = var_err / (2 * np.maximum(rms, 1e-12))
+    # d(sqrt(v)) = dv / (2 sqrt(v)), but no larger than sqrt(dv) where v is near zero.
+    rms_err = np.minimum(var_err / (2 * np.maximum(rms, 1e-12)), np.sqrt(var_err))
     return ShotTemperature(n, coef[:3], coef[3:], rms, rms_err, factor * true_var, factor * var_err)
