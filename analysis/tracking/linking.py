@@ -298,6 +298,48 @@ class Linker:
 
     # -- state, for a service that links shots as they come ----------------------------------
 
+    @classmethod
+    def resume(cls, recent: list[tuple[int, float, Mapping[str, np.ndarray]]], *, next_id: int,
+               params: LinkParams | None = None) -> Linker:
+        """A linker that goes on after shots linked earlier (e.g. read back from a run file).
+
+        Parameters
+        ----------
+        recent : list of (frame, t_s, table)
+            The last shots linked (at least ``memory + 1`` of them), each table with its
+            ``particle`` column; oldest first.
+        next_id : int
+            The next trajectory id to hand out.
+        params : LinkParams, optional
+
+        The step spreads and the cluster's motion are measured again on the next shot.
+        """
+        linker = cls(params)
+        linker.next_id = int(next_id)
+        if not recent:
+            return linker
+        parts = []
+        for frame, t_s, table in sorted(recent, key=lambda r: r[0]):
+            ids = np.asarray(table["particle"], np.int64)
+            xyz = np.stack([np.asarray(table[c], float) for c in POSITION_COLUMNS], axis=1)
+            keep = (ids >= 0) & np.all(np.isfinite(xyz), axis=1)
+            errors = depth_errors(table, open_blur_pitches=linker.params.open_blur_pitches).take(keep)
+            parts.append(_Active(ids[keep], xyz[keep], np.full(keep.sum(), float(t_s)),
+                                 np.full(keep.sum(), int(frame), np.int64), errors))
+        every = parts[0]
+        for part in parts[1:]:
+            every = _Active.join(part, every)  # newest first
+        _, first = np.unique(every.ids, return_index=True)
+        last_frame = int(recent[-1][0]) if recent else None
+        latest = every.take(first)
+        linker.active = latest.take(latest.frame >= last_frame - linker.params.memory)
+        linker.last_frame = last_frame
+        times = sorted({float(r[1]) for r in recent})
+        linker.interval_s = float(np.min(np.diff(times))) if len(times) > 1 else None
+        if len(linker.active.ids) >= 2:
+            linker.nn_mm = float(cKDTree(latest.xyz).query(latest.xyz, k=2)[0][:, 1].mean())
+        return linker
+
     def state(self) -> dict[str, Any]:
         """Everything needed to go on linking later (JSON-able): :meth:`from_state` reads it."""
         a = self.active
