@@ -15,8 +15,9 @@ In equilibrium each velocity component is Maxwellian with variance ``k_B T / m``
 local velocity whatever the forces, so the truth's temperature is ``temperature_ev`` exactly. The
 integrator is BAOAB (Leimkuhler & Matthews 2013) with the friction step solved exactly.
 
-The sites are the scenario's positions; the first shot already has each particle a thermal
-displacement away from its site (the cluster starts in equilibrium).
+The first shot is the scenario itself: the sites are placed a thermal displacement away from the
+scenario's positions, so the cluster starts in equilibrium (and a shell is as wide as that
+displacement, about 0.16 mm at the defaults, a quarter of the ball's mean NN distance).
 """
 
 from __future__ import annotations
@@ -117,8 +118,10 @@ class MovingCluster:
         self.t = 0.0
         self.kt_m = motion.thermal_speed_mm_s ** 2  # k_B T / m in mm^2/s^2
         spread = math.sqrt(self.kt_m) / motion.cage_per_s if motion.cage_per_s > 0 else 0.0
-        self.sites = xyz - self.centre0
-        self.xyz = xyz + self.rng.normal(0.0, spread, size=(n, 3))
+        # The first shot is the scenario itself; each site lies a thermal displacement from it, so
+        # the cluster starts in equilibrium.
+        self.sites = xyz - self.centre0 - self.rng.normal(0.0, spread, size=(n, 3))
+        self.xyz = xyz
         self.velocity = self._gas_velocity(xyz, 0.0) + self.rng.normal(0.0, math.sqrt(self.kt_m), size=(n, 3))
         if n > 1:
             d, _ = cKDTree(xyz).query(xyz, k=2)
