@@ -2,7 +2,9 @@
 
 ``plenodust simulate --count N`` (N > 1) moves the scenario's particles with this model and renders
 one shot every ``interval_s`` (the metadata clock says when). Each particle sits in a cage: a
-harmonic well of angular frequency ``cage_per_s`` around its site. The sites form the scenario's
+harmonic well of angular frequency ``cage_per_s`` around its site, ``stiff_ratio`` times stiffer
+(in frequency) across the cluster's layers: radially in a ball or a cloud (the shells stay sharp
+while particles wander along them), along the normal of a flat layer. The sites form the scenario's
 cluster, which turns rigidly at ``rotation_deg_per_s`` about ``rotation_axis`` through its centre
 while the centre drifts at ``drift_mm_per_s``. The particles feel that cage, a soft repulsion
 from any neighbour closer than half the mean nearest-neighbour distance, and the neutral gas:
@@ -55,6 +57,7 @@ class Motion:
     drift_mm_per_s: tuple[float, float, float] = (0.03, 0.0, 0.01)
     hop_rate_per_s: float = 0.03
     hop_duration_s: float = 6.0
+    stiff_ratio: float = 3.0
     particle_diameter_um: float = MF_DIAMETER_UM
     particle_density_kg_m3: float = MF_DENSITY_KG_M3
     substeps: int = 20
@@ -117,10 +120,13 @@ class MovingCluster:
         self.centre0 = xyz.mean(axis=0) if n else np.zeros(3)
         self.t = 0.0
         self.kt_m = motion.thermal_speed_mm_s ** 2  # k_B T / m in mm^2/s^2
+        self.stiff_dir = _stiff_directions(xyz - self.centre0)  # in the cluster's frame
         spread = math.sqrt(self.kt_m) / motion.cage_per_s if motion.cage_per_s > 0 else 0.0
-        # The first shot is the scenario itself; each site lies a thermal displacement from it, so
-        # the cluster starts in equilibrium.
-        self.sites = xyz - self.centre0 - self.rng.normal(0.0, spread, size=(n, 3))
+        # The first shot is the scenario itself; each site lies a thermal displacement from it
+        # (smaller across the layers), so the cluster starts in equilibrium.
+        offset = self.rng.normal(0.0, spread, size=(n, 3))
+        along = np.sum(offset * self.stiff_dir, axis=1, keepdims=True) * self.stiff_dir
+        self.sites = xyz - self.centre0 - (offset - along) - along / motion.stiff_ratio
         self.xyz = xyz
         self.velocity = self._gas_velocity(xyz, 0.0) + self.rng.normal(0.0, math.sqrt(self.kt_m), size=(n, 3))
         if n > 1:
@@ -161,7 +167,10 @@ class MovingCluster:
         return self._centre(t) + sites @ self._rotation(t).T
 
     def _acceleration(self, xyz: np.ndarray, t: float) -> np.ndarray:
-        a = -(self.motion.cage_per_s ** 2) * (xyz - self._sites_at(t))
+        offset = xyz - self._sites_at(t)
+        stiff = self.stiff_dir @ self._rotation(t).T
+        across = np.sum(offset * stiff, axis=1, keepdims=True) * stiff
+        a = -(self.motion.cage_per_s ** 2) * (offset + (self.motion.stiff_ratio ** 2 - 1) * across)
         if self.repulsion_mm > 0 and len(xyz) > 1:
             pairs = cKDTree(xyz).query_pairs(self.repulsion_mm, output_type="ndarray")
             if len(pairs):
@@ -194,7 +203,13 @@ class MovingCluster:
         kick = math.sqrt(self.kt_m * (1 - fade * fade))
         x, v, t = self.xyz, self.velocity, self.t
         a = self._acceleration(x, t)
+        hop_velocity = self._hop_velocity(t)
         for _ in range(m.substeps):
+            # A hopping particle's velocity takes its site's along the hop: it crosses the shell gap
+            # with its site instead of ringing in its cage.
+            carried = self._hop_velocity(t + 0.5 * h)
+            v = v + carried - hop_velocity
+            hop_velocity = carried
             v = v + 0.5 * h * a
             x = x + 0.5 * h * v
             gas = self._gas_velocity(x, t + 0.5 * h)
@@ -206,6 +221,17 @@ class MovingCluster:
         self.xyz, self.velocity, self.t = x, v, t
         self._finish_hops()
         return self.snapshot()
+
+    def _hop_velocity(self, t: float) -> np.ndarray:
+        """Velocity (mm/s, camera frame) of each hopping particle's site along its hop."""
+        out = np.zeros((len(self.sites), 3))
+        rotation = self._rotation(t)
+        for i, (start, origin, target) in self._hopping.items():
+            f = (t - start) / self.motion.hop_duration_s
+            if 0.0 <= f <= 1.0:
+                rate = 0.5 * math.pi * math.sin(math.pi * f) / self.motion.hop_duration_s
+                out[i] = rotation @ ((target - origin) * rate)
+        return out
 
     def _start_hops(self) -> None:
         m = self.motion
@@ -230,6 +256,19 @@ class MovingCluster:
             if self.t - start >= self.motion.hop_duration_s:
                 self.sites[i] = target
                 del self._hopping[i]
+
+
+def _stiff_directions(rel: np.ndarray) -> np.ndarray:
+    """Per site, the unit direction across the cluster's layers: the normal of a flat cluster,
+    else radial from its centre."""
+    n = len(rel)
+    if n < 3:
+        return np.tile([0.0, 0.0, 1.0], (n, 1))
+    _, s, vt = np.linalg.svd(rel - rel.mean(axis=0), full_matrices=False)
+    if s[-1] < 0.25 * s[0]:
+        return np.tile(vt[-1], (n, 1))
+    norm = np.linalg.norm(rel, axis=1, keepdims=True)
+    return np.where(norm > 1e-9, rel / np.maximum(norm, 1e-9), np.array([0.0, 0.0, 1.0]))
 
 
 def moved_scenario(scenario: Scenario, snapshot: Snapshot) -> Scenario:

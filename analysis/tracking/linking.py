@@ -64,6 +64,10 @@ class LinkParams:
         Step spread assumed before the first links, as a fraction of the mean NN distance.
     min_step_nn : float
         Floor of the measured step spread, as a fraction of the mean NN distance.
+    rescue_gate_sigma : float
+        After the assignment, a trajectory and a particle both left unlinked are linked up to this
+        many step spreads when each is the other's only candidate (a particle hopping between
+        shells steps farther than thermal motion does). 0 turns it off.
     """
 
     memory: int = 2
@@ -74,6 +78,7 @@ class LinkParams:
     step_mm: tuple[float, float, float] | None = None
     initial_step_nn: float = 0.25
     min_step_nn: float = 0.005
+    rescue_gate_sigma: float = 8.0
 
     def __post_init__(self) -> None:
         if self.memory < 0 or self.gate_sigma <= 0 or self.max_step_nn <= 0:
@@ -217,6 +222,7 @@ class Linker:
                     motion = self._refit(old, rows, xyz[usable], cols, t_s, errors.take(usable), first=passes == 3)
             self.motion = motion
             step.search_range_mm = radius
+            rows, cols = self._rescue(old, rows, xyz[usable], cols, errors.take(usable), t_s, motion)
             cols = usable[cols]
         step.step_mm = np.array(self.step_mm) if self.step_mm is not None else step.step_mm
         step.motion = self.motion
@@ -244,16 +250,30 @@ class Linker:
         var[:, 2] += old.errors.extra_sigma_mm[rows] ** 2 + new_errors.extra_sigma_mm[cols] ** 2
         return var
 
+    def _rescue(self, old: _Active, rows: np.ndarray, xyz: np.ndarray, cols: np.ndarray, errors: DepthErrors,
+                t_s: float, motion: RigidMotion | None) -> tuple[np.ndarray, np.ndarray]:
+        """Link what the assignment left unlinked among itself, with the wider rescue gate."""
+        gate = self.params.rescue_gate_sigma
+        if gate <= self.params.gate_sigma or rows.size == len(old.ids) or cols.size == len(xyz):
+            return rows, cols
+        left_old = np.setdiff1d(np.arange(len(old.ids)), rows)
+        left_new = np.setdiff1d(np.arange(len(xyz)), cols)
+        r, c, _ = self._link_once(old.take(left_old), xyz[left_new], errors.take(left_new), t_s, motion, gate=gate,
+                                  unique=True)
+        return np.r_[rows, left_old[r]], np.r_[cols, left_new[c]]
+
     def _link_once(self, old: _Active, xyz: np.ndarray, errors: DepthErrors, t_s: float,
-                   motion: RigidMotion | None) -> tuple[np.ndarray, np.ndarray, float]:
+                   motion: RigidMotion | None, *, gate: float | None = None,
+                   unique: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
         p = self.params
+        gate = p.gate_sigma if gate is None else gate
         predicted = motion.predict(old.xyz, old.t, t_s) if (p.predict and motion is not None) else old.xyz
         shift_z = predicted[:, 2] - old.xyz[:, 2]
         gap = np.maximum((t_s - old.t) / self.interval_s, 1.0)
         spread = float(np.max(self.step_mm))
-        reach = np.minimum(p.gate_sigma * spread * gap, p.max_step_nn * self.nn_mm * gap)
+        reach = np.minimum(gate * spread * gap, p.max_step_nn * self.nn_mm * gap)
         open_width = (old.errors.z_high - old.errors.z_low) + float(np.max(errors.z_high - errors.z_low, initial=0.0))
-        radius = reach + open_width + p.gate_sigma * old.errors.extra_sigma_mm
+        radius = reach + open_width + gate * old.errors.extra_sigma_mm
         found = cKDTree(xyz).query_ball_point(predicted, radius, return_sorted=False)
         counts = np.fromiter((len(f) for f in found), np.int64, len(found))
         rows = np.repeat(np.arange(len(found)), counts)
@@ -268,8 +288,12 @@ class Linker:
         cost = np.sum(offset ** 2 / var, axis=1)
         # The search range in mm: a link also stays within max_step_nn of the mean NN distance.
         within = np.linalg.norm(offset, axis=1) <= p.max_step_nn * self.nn_mm * gap[rows]
-        keep = within & (cost <= p.gate_sigma ** 2)
-        r, c = assign(rows[keep], cols[keep], cost[keep], len(old.ids), len(xyz), unlinked_cost=p.gate_sigma ** 2 / 2)
+        keep = within & (cost <= gate ** 2)
+        if unique:  # only pairs with no other candidate on either side
+            one_row = np.bincount(rows[keep], minlength=len(old.ids)) == 1
+            one_col = np.bincount(cols[keep], minlength=len(xyz)) == 1
+            keep &= one_row[rows] & one_col[cols]
+        r, c = assign(rows[keep], cols[keep], cost[keep], len(old.ids), len(xyz), unlinked_cost=gate ** 2 / 2)
         return r, c, float(np.max(reach, initial=0.0))
 
     def _refit(self, old: _Active, rows: np.ndarray, xyz: np.ndarray, cols: np.ndarray, t_s: float,

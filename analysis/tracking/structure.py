@@ -105,6 +105,9 @@ def pair_correlation(xyz: np.ndarray, *, bins: int = 40, r_max_mm: float | None 
     centred = xyz - xyz.mean(axis=0)
     if r_max_mm is None:
         r_max_mm = 2 * float(np.sqrt(np.mean(np.sum(centred ** 2, axis=1))))
+        if not planar and is_ball(xyz):
+            # Beyond the equivalent sphere's radius few pairs are left to count.
+            r_max_mm = min(r_max_mm, float(np.sqrt(5 / 3 * np.mean(np.sum(centred ** 2, axis=1)))))
     try:
         if planar:
             _, _, vt = np.linalg.svd(centred, full_matrices=False)
