@@ -126,6 +126,12 @@ def score_tracks(linked: pd.DataFrame, truth: pd.DataFrame, *, max_distance: flo
         "gaps": gaps, "gaps_bridged": bridged,
         "fragments_per_particle": float(np.mean(fragments)) if fragments else math.nan,
         "detections_paired": float(np.mean(truth_id >= 0)) if len(truth_id) else math.nan,
-        "velocity_rms_error_mm_s": [float(np.sqrt(np.nanmean(err[:, a] ** 2))) for a in range(3)],
-        "true_speed_rms_mm_s": [float(np.sqrt(np.nanmean(true_v[:, a] ** 2))) for a in range(3)],
+        "velocity_rms_error_mm_s": [_rms(err[:, a]) for a in range(3)],
+        "true_speed_rms_mm_s": [_rms(true_v[:, a]) for a in range(3)],
     }
+
+
+def _rms(values: np.ndarray) -> float:
+    """RMS of the finite values (NaN where there are none)."""
+    finite = values[np.isfinite(values)]
+    return float(np.sqrt(np.mean(finite ** 2))) if finite.size else math.nan
