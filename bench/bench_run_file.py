@@ -36,7 +36,7 @@ PARAMETERS = {"n_slices": 40, "alpha_min": 0.987, "alpha_max": 1.013,
 
 def _columns(n: int, frame: int) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(frame)
-    return {"particle": np.arange(n), "x": rng.uniform(0, 3280, n), "y": rng.uniform(0, 3280, n),
+    return {"index": np.arange(n), "x": rng.uniform(0, 3280, n), "y": rng.uniform(0, 3280, n),
             "alpha": rng.uniform(0.98, 1.02, n), "X": rng.normal(size=n), "Y": rng.normal(size=n),
             "Z": rng.normal(size=n), "brightness": rng.uniform(0, 1, n)}
 

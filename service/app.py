@@ -33,6 +33,7 @@ from service.queue import JobQueue
 from service.routes import (calibrations, camera as camera_routes, events, exposures, health, jobs,
                             metric_calibrations, runs)
 from service.runner import JobRunner, RunnerConfig
+from service.tracking import RunTracker
 from service.settings import Settings, get_settings
 from service.metric_calibrations import adopt as adopt_metric
 from service.store import Store
@@ -89,12 +90,15 @@ def create_app(settings: Settings | None = None, *, camera: Any = None, store: S
         the_executor = executor or make_executor(settings.executor, workers=settings.workers,
                                                  warm_up=settings.warm_up)
         disk = DiskGuard(data_dir, settings.min_free_bytes)
+        tracker = RunTracker(the_store)
+        the_store.on_run_rebuilt = tracker.forget
         runner = JobRunner(queue, the_store, the_executor, bus, metrics,
                            RunnerConfig(slots=settings.workers, heartbeat_s=settings.heartbeat_s,
                                         keep_slices=settings.keep_slices, parameters=settings.pipeline,
-                                        raw_retention=settings.raw_retention), guard=disk)
+                                        raw_retention=settings.raw_retention), guard=disk, tracker=tracker)
         state = ServiceState(settings=settings, db=db, store=the_store, queue=queue, bus=bus, metrics=metrics,
-                             executor=the_executor, runner=runner, disk=disk, started_at=time.time())
+                             executor=the_executor, runner=runner, disk=disk, started_at=time.time(),
+                             tracker=tracker)
         if camera is not None or settings.camera != "none":
             opener = (lambda: camera) if camera is not None else (lambda: open_camera(settings.camera))
             state.watcher = CameraWatcher(opener, the_store, queue, bus, metrics,

@@ -61,6 +61,20 @@ CREATE TABLE IF NOT EXISTS calibrations (
     source       TEXT NOT NULL,            -- 'camera' or 'upload'
     created_at   REAL NOT NULL
 );
+CREATE TABLE IF NOT EXISTS run_tracks (
+    run          TEXT PRIMARY KEY,
+    next_frame   INTEGER NOT NULL,         -- the first frame not linked yet
+    next_id      INTEGER NOT NULL,         -- the next trajectory id
+    t0           REAL,                     -- shot time (s since 1970) of the run's first linked frame
+    last_t       REAL                      -- t (s since t0) of the last linked frame
+);
+CREATE TABLE IF NOT EXISTS frame_summaries (
+    run          TEXT NOT NULL,
+    frame        INTEGER NOT NULL,
+    t            REAL,
+    data         TEXT NOT NULL,            -- the shot's structure (JSON, analysis.tracking.summary)
+    PRIMARY KEY (run, frame)
+);
 CREATE TABLE IF NOT EXISTS settings_kv (
     key    TEXT PRIMARY KEY,
     value  TEXT NOT NULL

@@ -1,7 +1,9 @@
 """A simulated experiment for ``plenodust demo``: a camera folder that gets a new shot every few seconds.
 
 The first shot and the white images come from :func:`analysis.simulation.scenario_files.write_scenario`;
-each later shot is the same cluster a moment later (thermal jitter, slow drift), rendered
+each later shot is the same cluster as much later as the clock says, moved physically
+(:class:`analysis.simulation.dynamics.MovingCluster`: Langevin motion in cages, rotation, drift,
+shell hops; so the dashboard's trails and temperatures have something real to show), rendered
 by the simulator's forward model and added to the simulated camera's file system as the
 camera would store it (``IMG_nnnn.RAW`` + ``.TXT``). Shots are taken on a fixed clock (the
 k-th at ``k * every_s`` after the start, its metadata saying so), whatever rendering takes,
@@ -22,6 +24,7 @@ import numpy as np
 
 from analysis.camera.model import CameraModel
 from analysis.formats.exposure import Exposure, txt_bytes
+from analysis.simulation.dynamics import Motion, MovingCluster, moved_scenario
 from analysis.simulation.scenarios import make_scenario
 from analysis.simulation.camera import (DEFAULT_LENS, DEFAULT_SERIAL, simulated_camera_metadata,
     simulated_private_metadata)
@@ -57,6 +60,8 @@ class DemoShots:
         self.model = CameraModel.from_metadata(self.metadata)
         self.private = simulated_private_metadata(DEFAULT_SERIAL)
         self.scenario = make_scenario(scenario, seed)
+        self.cluster = MovingCluster(self.scenario, Motion(), seed=[seed, 0x40710])
+        self._last_shot: datetime | None = None
         self.keep = keep
         self.shots = 0
         self.serial = DEFAULT_SERIAL  # the camera whose shots and white images these are
@@ -90,8 +95,12 @@ class DemoShots:
 
     def _shoot(self, taken_at: datetime) -> str:
         rng = np.random.default_rng([self.seed, self.shots + 1])
-        # Thermal jitter plus a slow drift, so consecutive frames differ visibly.
-        self.scenario = self.scenario.jittered(rng, sigma_mm=0.03)
+        # The cluster moves on by the time since the last shot (a second per step, at most a minute).
+        seconds = 1.0 if self._last_shot is None else (taken_at - self._last_shot).total_seconds()
+        for _ in range(int(min(60, max(1, round(seconds))))):
+            self.cluster.advance()
+        self._last_shot = taken_at
+        self.scenario = moved_scenario(self.scenario, self.cluster.snapshot())
         particles = self.scenario.particles
         keep = np.flatnonzero(in_view(self.model, particle_truth(self.model, particles)))
         image = render_exposure(self.model, particles.subset(keep), seed=int(rng.integers(2 ** 63)),

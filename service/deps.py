@@ -35,6 +35,7 @@ class ServiceState:
     runner: JobRunner
     disk: DiskGuard
     watcher: Any = None          # service.watcher.CameraWatcher when a camera is configured
+    tracker: Any = None          # service.tracking.RunTracker: links each run's shots as they arrive
     started_at: float = 0.0
     executor_error: str | None = None
     # Uploads read and decoded at once (a full F01 frame takes ~100 MB while it is checked).

@@ -96,6 +96,30 @@ class ParticleTable(BaseModel):
                     "columns; a run's table has a frame column; NaN is null")
 
 
+class TrajectoryTable(BaseModel):
+    """A run's linked particles by column (``GET /runs/{run}/trajectories?format=json``)."""
+
+    run: str
+    count: int
+    frames: list[int] = Field(description="the frames the rows come from")
+    columns: dict[str, list[float | int | None]] = Field(
+        description="frame, t (s since the run's first shot), particle (trajectory id, as in trackpy), index "
+                    "(row in its exposure's table), x, y, alpha, X, Y, Z (mm), vX, vY, vZ (mm/s; null where a "
+                    "trajectory has one shot), brightness and quality columns; NaN is null")
+
+
+class RunSummaryTable(BaseModel):
+    """A run's structure per shot (``GET /runs/{run}/summary?format=json``)."""
+
+    run: str
+    count: int
+    particle_mass_kg: float
+    columns: dict[str, list[float | int | None]] = Field(
+        description="frame, t, count, with_velocity, vX..vZ (drift, mm/s), omegaX..omegaZ (rad/s), v_rms_* and "
+                    "T_*_eV per axis with their *_err_*, T_eV, T_xy_eV, shells and per shell i shell{i}_r_mm, "
+                    "shell{i}_r_err_mm, shell{i}_n, shell{i}_n_err, noise_X_mm..noise_Z_mm (position noise)")
+
+
 class Curves(BaseModel):
     """Brightness curves ``B_i(alpha)``: mean product-image intensity per pixel of each particle's
     blob at each refocus parameter ``alpha``."""

@@ -187,6 +187,82 @@ def read_run_table(path: Path) -> dict[str, np.ndarray]:
         return read_nx_columns(f["entry/data"])
 
 
+def read_frames(path: Path, first: int, last: int | None = None) -> dict[str, np.ndarray]:
+    """The rows of frames ``first`` ... ``last`` (inclusive; ``last`` None: to the end) only, at a
+    cost of those rows, not of the run.
+
+    Raises
+    ------
+    RunFileDamaged, RunFileBusy
+        As :func:`read_run_table`.
+    """
+    with _checked(path) as f:
+        coll, data = f["entry/exposures"], f["entry/data"]
+        frames = coll["frame"][()]
+        start_row = coll["first_row"][()] if "first_row" in coll else \
+            np.concatenate([[0], np.cumsum(coll["particles"][()])[:-1]]).astype(np.int64)
+        a = int(np.searchsorted(frames, first))
+        b = len(frames) if last is None else int(np.searchsorted(frames, last, side="right"))
+        names = json.loads(data.attrs["columns"])
+        if a >= b:
+            return {name: data[name][:0] for name in names}
+        lo = int(start_row[a])
+        hi = int(start_row[b]) if b < len(frames) else data[names[0]].shape[0]
+        return {name: decode_strings(data[name][lo:hi]) for name in names}
+
+
+def update_columns(path: Path, frames: Mapping[int, Mapping[str, np.ndarray]]) -> bool:
+    """Overwrite columns of existing frames' rows in place (all of a frame's rows, in file order),
+    e.g. trajectory ids and velocities once a later shot is linked. The caller holds the run's
+    lock. Columns not yet in the file are added (NaN, or -1 for whole numbers, elsewhere).
+
+    Returns False, having written nothing, when the file is missing, busy or damaged, or a frame is
+    not in it (the caller may rebuild the run file and link again).
+    """
+    if not path.exists() or marker_path(path).exists():
+        return False
+    marker = marker_path(path)
+    _mark(marker)
+    try:
+        with _open(path, "r+") as f:
+            book = _bookkeeping(f)
+            if not book.appendable:
+                marker.unlink()
+                return False
+            data = f["entry/data"]
+            names = list(book.names)
+            spans = {}
+            for frame, columns in frames.items():
+                p = int(np.searchsorted(book.frames, frame))
+                if p >= len(book.frames) or book.frames[p] != frame:
+                    marker.unlink()
+                    return False
+                end = int(book.first_row[p + 1]) if p + 1 < len(book.frames) else book.rows
+                spans[frame] = (int(book.first_row[p]), end)
+            for columns in frames.values():
+                for name, values in columns.items():
+                    if name not in names:
+                        values = np.asarray(values)
+                        fill = -1 if values.dtype.kind in "iu" else np.nan
+                        create_nx_column(data, name, np.full(book.rows, fill, values.dtype if values.dtype.kind in "iuf"
+                                                             else np.float64), chunk_rows=ROW_CHUNK)
+                        names.append(name)
+                        data.attrs["columns"] = json.dumps(names)
+            for frame, columns in frames.items():
+                lo, hi = spans[frame]
+                for name, values in columns.items():
+                    values = np.asarray(values)
+                    if values.shape != (hi - lo,):
+                        raise ValueError(f"frame {frame}: {name} has {values.shape[0]} values for {hi - lo} rows")
+                    data[name][lo:hi] = values.astype(data[name].dtype)
+    except (RunFileBusy, RunFileDamaged):
+        marker.unlink(missing_ok=True)
+        return False
+    _fsync(path)
+    marker.unlink()
+    return True
+
+
 def read_run(path: Path) -> RunContents:
     """A whole run file (this layout or the older fixed-size one) in memory.
 

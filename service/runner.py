@@ -21,6 +21,7 @@ from service.metrics import Metrics
 from service.queue import Job, JobQueue, make_owner
 from service.results import JobOutput, JobTask
 from service.store import ExposureRecord, Store
+from service.tracking import RunTracker
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +54,8 @@ class JobRunner:
     """Runs queued jobs until stopped."""
 
     def __init__(self, queue: JobQueue, store: Store, executor: Executor, bus: EventBus, metrics: Metrics,
-                 config: RunnerConfig | None = None, *, guard: DiskGuard | None = None) -> None:
+                 config: RunnerConfig | None = None, *, guard: DiskGuard | None = None,
+                 tracker: RunTracker | None = None) -> None:
         self.queue = queue
         self.store = store
         self.executor = executor
@@ -61,6 +63,7 @@ class JobRunner:
         self.metrics = metrics
         self.config = config or RunnerConfig()
         self.guard = guard
+        self.tracker = tracker
         self._wake = asyncio.Event()
         self._tasks: list[asyncio.Task] = []
 
@@ -247,6 +250,8 @@ class JobRunner:
             log.info("first result: run %s frame %d, %d particles", record.run, record.frame, output.particles)
         self.metrics.inc("plenodust_jobs_total", outcome="done")
         self.metrics.observe_job(output.seconds, now - record.created_at)
+        # Linked before the result is announced, so a page that reloads on it sees the trajectories.
+        await self._track(record.run)
         done = self.queue.get(job.id)
         if done is not None:
             self._publish_job(done, record)
@@ -258,6 +263,18 @@ class JobRunner:
             except OSError:
                 log.exception("removing raw files beyond the retention failed")
 
+    async def _track(self, run: str) -> None:
+        """Link the run's frames that can be linked now (a failure to link never fails the job)."""
+        if self.tracker is None:
+            return
+        try:
+            frames = await asyncio.to_thread(self.tracker.advance, run)
+        except Exception:
+            log.exception("linking run %s failed; its trajectories wait for the next result", run)
+            return
+        if frames:
+            self.bus.publish("tracks", {"run": run, "frames": frames})
+
     async def _fail(self, job: Job, owner: str, record: ExposureRecord, error: str, *,
                     waits_for: str | None = None) -> None:
         if await asyncio.to_thread(self.queue.fail, job.id, owner, error, waits_for=waits_for):
@@ -268,6 +285,7 @@ class JobRunner:
         failed = self.queue.get(job.id)
         if failed is not None:
             self._publish_job(failed, record)
+        await self._track(record.run)  # frames after a failed one need not wait for it
 
     async def _give_back(self, job: Job, owner: str, record: ExposureRecord, error: str) -> None:
         state = await asyncio.to_thread(self.queue.release, job.id, owner, error)

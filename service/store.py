@@ -27,7 +27,7 @@ import sqlite3
 import tempfile
 import threading
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -85,6 +85,8 @@ class Store:
         # One writer per run file at a time within this process.
         self._run_locks: dict[str, threading.Lock] = {}
         self._locks_lock = threading.Lock()
+        # Told the run whose file was rebuilt from the result files (its trajectories are gone).
+        self.on_run_rebuilt: Callable[[str], None] | None = None
 
     # -- raw exposures ---------------------------------------------------------------
 
@@ -257,7 +259,7 @@ class Store:
             return self._run_locks.setdefault(run, threading.Lock())
 
     @contextmanager
-    def _run_guard(self, run: str) -> Iterator[None]:
+    def run_guard(self, run: str) -> Iterator[None]:
         """Hold a run file: a thread lock within this process, an ``flock`` across processes
         sharing the data folder (a run file is changed in place, so writers must not overlap)."""
         with self._run_lock(run):
@@ -276,11 +278,11 @@ class Store:
         :mod:`service.run_file` for the rest. Returns how the file was changed
         (``"in place"``, ``"rewritten"``, ``"rebuilt"``).
         """
-        rows = None if output is None else run_file.frame_rows(output.columns, record.frame)
-        with self._run_guard(record.run):
+        rows = None if output is None else with_track_columns(run_file.frame_rows(output.columns, record.frame))
+        with self.run_guard(record.run):
             return run_file.put_frame(self.run_path(record.run), record.run, record.frame, record.id, rows,
                                       output.parameters if output is not None else {},
-                                      lambda: self.run_from_results(record.run))
+                                      lambda: self.rebuilt_run(record.run))
 
     @contextmanager
     def _repaired_run(self, run: str) -> Iterator[Path | None]:
@@ -290,14 +292,20 @@ class Store:
         if not path.exists() and not run_file.marker_path(path).exists():
             yield None
             return
-        with self._run_guard(run):
-            run_file.repair(path, run, lambda: self.run_from_results(run))
+        with self.run_guard(run):
+            run_file.repair(path, run, lambda: self.rebuilt_run(run))
             yield path if path.exists() else None
 
     def read_run_columns(self, run: str) -> dict[str, np.ndarray] | None:
         """All particles of a run with a ``frame`` column, or None for an unknown run."""
         with self._repaired_run(run) as path:
             return None if path is None else run_file.read_run_table(path)
+
+    def read_run_frames(self, run: str, first: int = 0, last: int | None = None) -> dict[str, np.ndarray] | None:
+        """The rows of frames ``first`` ... ``last`` of a run (at the cost of those rows), or None
+        for a run without a file."""
+        with self._repaired_run(run) as path:
+            return None if path is None else run_file.read_frames(path, first, last)
 
     def run_file_snapshot(self, run: str) -> Path | None:
         """A private copy of the run file for serving (appends change the file in place), or
@@ -315,6 +323,13 @@ class Store:
                 raise
             return copy
 
+    def rebuilt_run(self, run: str) -> run_file.RunContents:
+        """:meth:`run_from_results`, telling :attr:`on_run_rebuilt` (its trajectories must be linked again)."""
+        contents = self.run_from_results(run)
+        if self.on_run_rebuilt is not None:
+            self.on_run_rebuilt(run)
+        return contents
+
     def run_from_results(self, run: str) -> run_file.RunContents:
         """A run as its indexed result files record it: what a damaged run file is rebuilt from."""
         rows = self.db.read("SELECT exposure_id, frame FROM results WHERE run = ? ORDER BY frame", (run,))
@@ -328,7 +343,7 @@ class Store:
                             "lack it until the exposure is processed again", run, row["frame"],
                             row["exposure_id"], exc)
                 continue
-            table = run_file.frame_rows(columns, row["frame"])
+            table = with_track_columns(run_file.frame_rows(columns, row["frame"]))
             tables.append(table)
             exposures.append({"id": row["exposure_id"], "frame": row["frame"], "particles": len(table["frame"]),
                               "parameters": parameters})
@@ -391,6 +406,24 @@ class Store:
                 "ON CONFLICT (serial) DO UPDATE SET path = excluded.path, images = excluded.images, "
                 "source = excluded.source, created_at = excluded.created_at",
                 (serial, str(folder.relative_to(self.data_dir)), count, source, time.time()))
+
+
+#: Trajectory columns of a run file's rows before their frame is linked (service.tracking).
+TRACK_COLUMNS = {"particle": (-1, np.int64), "t": (np.nan, np.float64), "vX": (np.nan, np.float64),
+                 "vY": (np.nan, np.float64), "vZ": (np.nan, np.float64)}
+
+
+def with_track_columns(rows: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """A frame's rows with the trajectory columns (``particle`` -1, ``t`` and velocities NaN) where
+    they lack them; a per-exposure table's own ``particle`` (the row number of older results) is
+    its ``index``."""
+    n = len(rows["frame"])
+    out = dict(rows)
+    if "particle" in out and "index" not in out:
+        out["index"] = out.pop("particle")
+    for name, (fill, dtype) in TRACK_COLUMNS.items():
+        out.setdefault(name, np.full(n, fill, dtype))
+    return out
 
 
 def _safe_name(name: str) -> str:

@@ -15,7 +15,7 @@ from analysis.formats.particle_table import (combine, csv_text, nx_entry, nx_gro
                                              read_nx_columns, read_table, set_nx_parameters, table_h5_bytes,
                                              write_csv, write_hdf5, write_nx_columns, write_nx_process)
 
-TABLE = {"particle": np.array([0, 1, 2]), "x": np.array([1.5, np.nan, 3.0]), "Z": np.array([60.1, 59.9, 1 / 3])}
+TABLE = {"index": np.array([0, 1, 2]), "x": np.array([1.5, np.nan, 3.0]), "Z": np.array([60.1, 59.9, 1 / 3])}
 
 
 def test_csv_has_lf_line_endings_full_precision_and_empty_nan(tmp_path):
@@ -25,7 +25,7 @@ def test_csv_has_lf_line_endings_full_precision_and_empty_nan(tmp_path):
     path = write_csv(TABLE, tmp_path / "t.csv")
     assert path.read_bytes() == text.encode()
     back = read_csv(path)
-    assert back["particle"].dtype == np.int64 and math.isnan(back["x"][1]) and back["Z"][2] == 1 / 3
+    assert back["index"].dtype == np.int64 and math.isnan(back["x"][1]) and back["Z"][2] == 1 / 3
 
 
 def test_csv_that_is_no_table_says_so(tmp_path):
@@ -43,7 +43,7 @@ def test_nexus_columns_round_trip_with_text_units_and_signal():
         assert data.attrs["signal"] == "Z" and data["Z"].attrs["units"] == "mm" and data["Z"].maxshape == (None,)
         back = read_nx_columns(data)
         assert list(back) == list(columns) and back["camera"].tolist() == ["A1", "B2", "C3"]
-        assert read_nx_columns(data, start=2)["particle"].tolist() == [2]
+        assert read_nx_columns(data, start=2)["index"].tolist() == [2]
 
 
 def test_parameters_as_json_and_attributes_replaced_when_they_change():
@@ -69,6 +69,18 @@ def test_a_download_and_a_batch_file_hold_the_same_table(tmp_path):
     download.write_bytes(table_h5_bytes(batch, title="run"))
     for name in batch:
         np.testing.assert_array_equal(read_hdf5_columns(download)[name], read_hdf5_columns(path)[name])
-    assert read_table(path, frame=1, required=("Z",))["particle"].tolist() == [0, 1, 2]
+    assert read_table(path, frame=1, required=("Z",))["index"].tolist() == [0, 1, 2]
     with pytest.raises(ParameterError, match="no column"):
         read_table(path, required=("vX",))
+
+
+def test_a_table_from_before_the_rename_reads_its_row_number_as_index(tmp_path):
+    # Until trajectories came, `particle` numbered an exposure's rows; it now means a trajectory id.
+    old = write_csv({"particle": np.array([0, 1]), "X": np.array([1.0, 2.0]), "Z": np.array([60.0, 61.0])},
+                    tmp_path / "old.csv")
+    back = read_csv(old)
+    assert list(back) == ["index", "X", "Z"] and back["index"].tolist() == [0, 1]
+    # A linked table (with t) keeps its particle column: the trajectory ids.
+    linked = write_csv({"frame": np.array([0, 1]), "t": np.array([0.0, 1.0]), "particle": np.array([7, 7]),
+                        "X": np.array([1.0, 1.1])}, tmp_path / "linked.csv")
+    assert read_csv(linked)["particle"].tolist() == [7, 7]

@@ -67,7 +67,7 @@ def test_result_table_and_provenance(layer_result):
     assert set(COLUMNS) <= set(r.particles)
     n = len(r)
     assert all(np.asarray(r.particles[c]).shape == (n,) for c in COLUMNS)
-    assert np.array_equal(r.particles["particle"], np.arange(n))
+    assert np.array_equal(r.particles["index"], np.arange(n))
     assert r.alphas.shape == (40,) and r.stack.shape == (40, r.grid.height, r.grid.width)
     assert r.stack.dtype == np.float32 and r.subaperture.shape == (r.grid.height, r.grid.width)
     assert r.curves.shape == (n, 40)

@@ -41,7 +41,7 @@ def test_process_one_exposure_to_csv(sim, tmp_path, capsys):
     assert "loading the analysis kernels" in err
     assert "IMG_0001.lfp (1/1): refocus" in err and "IMG_0001.lfp (1/1): refine" in err, err
     table = read_csv(out)
-    assert list(table)[:8] == ["particle", "x", "y", "alpha", "X", "Y", "Z", "brightness"]
+    assert list(table)[:8] == ["index", "x", "y", "alpha", "X", "Y", "Z", "brightness"]
     assert set(COLUMNS) == set(table)
     assert summary["exposures"][0]["particles"] == table["x"].size > 0
     truth = read_csv(sim / "IMG_0001.truth.csv")
@@ -66,7 +66,8 @@ def test_a_batch_csv_has_lf_line_endings(sim, tmp_path, capsys):
                                    "--cache", str(tmp_path / "cache"), "--quiet"])
     assert code == 0
     data = out.read_bytes()
-    assert b"\r" not in data and data.startswith(b"frame,particle,")
+    # frame and t (s since the first shot, from the metadata clock) first; index numbers the particles.
+    assert b"\r" not in data and data.startswith(b"frame,t,index,")
 
 
 def test_batch_folder_to_one_table_with_frames_and_stack(sim, tmp_path, capsys):

@@ -37,7 +37,7 @@ def _columns(frame: int, n: int | None = None) -> dict[str, np.ndarray]:
     """A frame's particle table; sizes vary with the frame (0 included) so row ranges matter."""
     n = (frame * 7) % 5 if n is None else n
     rng = np.random.default_rng(frame)
-    return {"particle": np.arange(n), "x": rng.uniform(0, 480, n), "y": rng.uniform(0, 480, n),
+    return {"index": np.arange(n), "x": rng.uniform(0, 480, n), "y": rng.uniform(0, 480, n),
             "alpha": rng.uniform(0.98, 1.02, n), "X": rng.normal(size=n), "Y": rng.normal(size=n),
             "Z": rng.normal(size=n), "brightness": rng.uniform(size=n)}
 
@@ -73,6 +73,11 @@ def _expected(outputs: dict[int, JobOutput]) -> dict[str, np.ndarray]:
 def _assert_run(store: Store, outputs: dict[int, JobOutput], run: str = "r") -> None:
     got = store.read_run_columns(run)
     want = _expected(outputs)
+    # Until its frame is linked (service.tracking) a row has no trajectory: particle -1, t and v NaN.
+    particle = got.pop("particle")
+    assert np.all((particle == -1) | np.isnan(particle))  # NaN in rows of a file from before trajectories
+    for name in ("t", "vX", "vY", "vZ"):
+        assert np.all(np.isnan(got.pop(name))), name
     assert list(got) == list(want)
     for name in want:
         np.testing.assert_array_equal(got[name], want[name], err_msg=name)
@@ -155,7 +160,8 @@ def test_a_column_one_frame_lacks_is_nan_there(store: Store) -> None:
         store.update_run_file(records[f], outputs[f])
     cols = store.read_run_columns("r")
     np.testing.assert_array_equal(cols["extra"], [np.nan, np.nan, 7, 8, np.nan, np.nan, np.nan])
-    assert list(cols) == ["particle", "x", "y", "alpha", "X", "Y", "Z", "brightness", "frame", "extra", "label"]
+    assert list(cols) == ["index", "x", "y", "alpha", "X", "Y", "Z", "brightness", "frame", "particle", "t", "vX",
+                          "vY", "vZ", "extra", "label"]
     np.testing.assert_array_equal(cols["frame"], [0, 0, 1, 1, 2, 3, 3])
 
 

@@ -84,7 +84,7 @@ def test_upload_is_processed_by_the_real_pipeline_and_matches_truth(client, sim)
 
     table = client.get(f"/api/v1/exposures/{body['exposure_id']}/particles").json()
     columns = table["columns"]
-    for name in ("particle", "x", "y", "alpha", "X", "Y", "Z", "brightness"):
+    for name in ("index", "x", "y", "alpha", "X", "Y", "Z", "brightness"):
         assert len(columns[name]) == table["count"]
     assert_matches_truth(columns, truth_xyz(sim.truth[0]))
 

@@ -84,6 +84,27 @@ def test_dashboard_shows_new_results_live_and_readably(server, sim, chromium) ->
         assert browser.evaluate("document.getElementById('particle').options.length") == count
         time.sleep(0.5)
 
+        # Trails: the two shots are linked as they arrive, and each view draws every trajectory's path.
+        trails = httpx.get(server.url + "/api/v1/runs/dash/trajectories?frame_min=0&frame_max=1").json()
+        linked = {p for p, f in zip(trails["columns"]["particle"], trails["columns"]["frame"]) if f == 1}
+        browser.wait_for("document.getElementById('scatter').data.length === 3"
+                         " && document.getElementById('scatter').data[2].x.length > 0")
+        for plot_id in ("scatter", "top"):
+            xs = _plot(browser, plot_id, "gd.data[2].x")
+            assert _plot(browser, plot_id, "gd.data[2].mode") == "lines"
+            # One line per trajectory seen in both shots, separated by gaps (null).
+            points = [v for v in xs if v is not None]
+            assert len(points) == trails["count"] and xs.count(None) == len(set(trails["columns"]["particle"])) - 1
+        assert any("trajectory" in t for t in _plot(browser, "top", "gd.data[0].text")) and linked
+        # The run over time: particles per shot, temperature with its error bars, against t in s.
+        browser.wait_for("document.getElementById('timeline').data")
+        summary = httpx.get(server.url + "/api/v1/runs/dash/summary").json()["columns"]
+        assert _plot(browser, "timeline", "gd.data[0].y") == summary["count"]
+        assert _plot(browser, "timeline", "gd.data.map(d => d.name)")[:3] == ["particles", "T lateral (X, Y)", "T (X, Y, Z)"]
+        assert "t (s" in _plot(browser, "timeline", "gd._fullLayout.xaxis.title.text")
+        assert _plot(browser, "timeline", "gd._fullLayout.yaxis2.title.text") == "T (eV)"
+        assert "position noise" in browser.evaluate("document.getElementById('run-info').textContent")
+
         # 3D positions: named axes in mm with tick labels, a colour bar for Z, Y down.
         scene = _plot(browser, "scatter", "(a => ({x: a.xaxis.title.text, y: a.yaxis.title.text, z: a.zaxis.title.text,"
                                           " ticks: a.xaxis.showticklabels && a.zaxis.showticklabels,"
@@ -144,8 +165,8 @@ def test_a_1000_px_window_shows_all_four_panels(server, sim, chromium) -> None:
         boxes = browser.evaluate("JSON.stringify([...document.querySelectorAll('.panel')].map(p => {"
                                  " const r = p.getBoundingClientRect(); return [r.left, r.top, r.right, r.bottom]; }))")
         panels = json.loads(boxes)
-        assert len(panels) == 4
-        for left, top, right, bottom in panels:
+        assert len(panels) == 5  # the four views, and the run over time in a row below them (scrolled to)
+        for left, top, right, bottom in panels[:4]:
             assert 0 <= left and right <= 1000 and 0 <= top and bottom <= 900, panels
             assert right - left > 300 and bottom - top > 300, panels
         # Each plot fills its panel (no empty area under the curve), and the curve's note is in view.
@@ -156,6 +177,12 @@ def test_a_1000_px_window_shows_all_four_panels(server, sim, chromium) -> None:
         curve_panel = panels[2]
         assert note["height"] > 10 and note["bottom"] <= curve_panel[3] + 1
         browser.screenshot(SHOTS / "dashboard-1000.png")
+        # The run's time plots fill the row below, a scroll away.
+        browser.evaluate("document.querySelector('.panel.wide').scrollIntoView()")
+        wide = json.loads(browser.evaluate("JSON.stringify(document.querySelector('.panel.wide').getBoundingClientRect())"))
+        assert wide["width"] > 700 and wide["height"] >= 300 and wide["bottom"] <= 901, wide
+        time.sleep(0.5)
+        browser.screenshot(SHOTS / "dashboard-1000-timeline.png")
 
 
 def test_api_docs_load_without_internet(server, chromium) -> None:

@@ -23,7 +23,7 @@ def store(tmp_path: Path) -> Store:
 
 
 def _output(n: int, z0: float) -> JobOutput:
-    return JobOutput(columns={"particle": np.arange(n), "x": np.linspace(1, 2, n), "y": np.linspace(3, 4, n),
+    return JobOutput(columns={"index": np.arange(n), "x": np.linspace(1, 2, n), "y": np.linspace(3, 4, n),
                               "alpha": np.full(n, 1.0), "X": np.arange(n) * 0.1, "Y": np.arange(n) * 0.2,
                               "Z": z0 + np.arange(n), "brightness": np.full(n, 5.0)},
                      parameters={"n_slices": 40, "alpha_min": 0.987},

@@ -365,7 +365,9 @@ def test_written_files_parse_with_the_format_readers(written):
     doc = json.loads(files.scenario_json.read_text())
     rows = read_truth(files.truth[0])
     assert len(rows) == doc["exposures"][0]["particles_in_view"] > 5
-    assert list(rows[0]) == ["particle", "X", "Y", "Z", "alpha", "x", "y", "blur_pitches", "brightness"]
+    # A run (count 2) also has each particle's velocity and shell.
+    assert list(rows[0]) == ["particle", "X", "Y", "Z", "alpha", "x", "y", "blur_pitches", "brightness",
+                             "vX", "vY", "vZ", "shell"]
     scenario = make_scenario("shadowing", 21)
     k = int(rows[0]["particle"])
     assert float(rows[0]["Z"]) == pytest.approx(scenario.particles.z_mm[k], abs=1e-6)
@@ -376,11 +378,18 @@ def test_written_files_parse_with_the_format_readers(written):
         reach = int((float(row["blur_pitches"]) / 2 + 1) * model.lattice.pitch_px)
         patch = image[max(y - reach, 0):y + reach, max(x - reach, 0):x + reach]
         assert patch.max() > 300
-    # The second exposure shows the same particles, moved a little.
-    rows2 = read_truth(files.truth[1])
-    assert [r["particle"] for r in rows2] == [r["particle"] for r in rows]
-    dz = [float(a["Z"]) - float(b["Z"]) for a, b in zip(rows, rows2)]
+    # The second exposure, a second later on the metadata clock, shows (nearly) the same particles,
+    # moved a little; its truth has their velocities.
+    rows2 = {r["particle"]: r for r in read_truth(files.truth[1])}
+    both = [r for r in rows if r["particle"] in rows2]
+    assert len(both) >= 0.9 * len(rows)
+    dz = [float(rows2[r["particle"]]["Z"]) - float(r["Z"]) for r in both]
     assert 0 < np.std(dz) < 0.1
+    step = np.array([[float(rows2[r["particle"]][c]) - float(r[c]) for c in "XYZ"] for r in both])
+    velocity = np.array([[float(rows2[r["particle"]][f"v{c}"]) for c in "XYZ"] for r in both])
+    assert np.median(np.linalg.norm(step - velocity * 1.0, axis=1)) < np.median(np.linalg.norm(step, axis=1))
+    times = [read_exposure(p).metadata["devices"]["clock"]["zuluTime"] for p in files.lfp]
+    assert times == ["2021-06-01T09:00:00.000Z", "2021-06-01T09:00:01.000Z"]
 
 
 def test_written_calibration_folder(written):

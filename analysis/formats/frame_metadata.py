@@ -109,3 +109,26 @@ def check_packing(metadata: dict) -> None:
     if endian != "big" or bits != 12:
         raise FormatError(f"image.rawDetails.pixelPacking declares {endian!r}-endian {bits!r}-bit pixels; "
                           "only big-endian 12-bit (the F01's) can be read")
+
+
+def shot_time_s(metadata: dict) -> float | None:
+    """When the picture was taken: ``devices.clock.zuluTime`` as seconds since 1970 (UTC), or None
+    where the metadata carry no readable clock.
+
+    Examples
+    --------
+    >>> shot_time_s({"devices": {"clock": {"zuluTime": "2021-06-01T09:00:01.250Z"}}}) % 60
+    1.25
+    """
+    from datetime import datetime, timezone
+
+    text = lookup(metadata, "devices.clock.zuluTime")
+    if not isinstance(text, str):
+        return None
+    try:
+        stamp = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        return None
+    if stamp.tzinfo is None:
+        stamp = stamp.replace(tzinfo=timezone.utc)
+    return stamp.timestamp()

@@ -2,6 +2,10 @@
 holds a table is made of.
 
 A table is a mapping of column name to 1-D array (:data:`COLUMNS`, plus ``frame`` for a batch).
+``index`` numbers an exposure's particles (0 ... n-1, by image position); ``particle`` is reserved
+for a trajectory id, as in trackpy (:mod:`analysis.tracking`). A table written before that
+rename has ``particle`` for the row number: :func:`read_csv` and :func:`read_hdf5_columns` read
+it as ``index``.
 
 CSV: a header row, one row per particle, ``\\n`` line endings, floats at full precision
 (``repr``), NaN as an empty cell. NeXus: ``/entry`` (NXentry) holds ``/entry/data`` (NXdata:
@@ -30,21 +34,26 @@ from analysis.errors import ParameterError
 from .atomic_write import atomic_path
 
 #: Columns of the particle table, in this order.
-COLUMNS: tuple[str, ...] = ("particle", "x", "y", "alpha", "X", "Y", "Z", "brightness",
+COLUMNS: tuple[str, ...] = ("index", "x", "y", "alpha", "X", "Y", "Z", "brightness",
                             "peak_height", "peak_width", "residual", "prominence", "alpha_std", "intensity",
                             "n_lit", "blur_pitches", "leftover")
 #: Units of the columns that have them (NeXus `units` attributes).
 UNITS = {"x": "pixel", "y": "pixel", "X": "mm", "Y": "mm", "Z": "mm", "alpha": "1", "peak_width": "1"}
 #: Columns that hold whole numbers (read back as int64 from CSV).
-INTEGER_COLUMNS = ("particle", "frame")
+INTEGER_COLUMNS = ("index", "frame", "particle")
 
 
-def combine(tables: Iterable[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
-    """One table for a batch, with a ``frame`` column first (the index of each table)."""
+def combine(tables: Iterable[Mapping[str, np.ndarray]],
+            times: Sequence[float | None] | None = None) -> dict[str, np.ndarray]:
+    """One table for a batch, with a ``frame`` column first (the index of each table) and, given
+    each table's shot time (s; all known), ``t``: seconds since the earliest of them."""
     parts = []
+    known = times is not None and all(t is not None for t in times)
+    start = min(times) if known and times else 0.0
     for i, table in enumerate(tables):
         n = len(next(iter(table.values()))) if table else 0
-        parts.append({"frame": np.full(n, i, dtype=np.int64), **table})
+        when = {"t": np.full(n, float(times[i]) - start)} if known else {}
+        parts.append({"frame": np.full(n, i, dtype=np.int64), **when, **table})
     if not parts:
         return {name: np.empty(0) for name in ("frame",) + COLUMNS}
     names = list(dict.fromkeys(name for p in parts for name in p))
@@ -90,13 +99,21 @@ def read_csv(path: str | Path) -> dict[str, np.ndarray]:
     try:
         for k, name in enumerate(names):
             values = [r[k] for r in body]
-            if name in INTEGER_COLUMNS:
+            if name in INTEGER_COLUMNS and all(v != "" for v in values):
                 out[name] = np.array([int(v) for v in values], dtype=np.int64)
             else:
                 out[name] = np.array([float(v) if v != "" else math.nan for v in values], dtype=np.float64)
     except (ValueError, IndexError) as exc:
         raise ParameterError(f"{path} is not a particle table ({exc}); expected a header row and numbers") from None
-    return out
+    return legacy_index(out)
+
+
+def legacy_index(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """A table written before ``particle`` meant a trajectory: its ``particle`` (the row number)
+    renamed ``index``. Recognised by having ``particle`` without ``index`` or ``t``."""
+    if "particle" in columns and "index" not in columns and "t" not in columns:
+        return {("index" if k == "particle" else k): v for k, v in columns.items()}
+    return columns
 
 
 # -- NeXus -------------------------------------------------------------------------------------
@@ -244,7 +261,7 @@ def write_hdf5(path: str | Path, columns: Mapping[str, np.ndarray], *, parameter
 def read_hdf5_columns(path: str | Path) -> dict[str, np.ndarray]:
     """The particle table of any of the project's NeXus files."""
     with h5py.File(path, "r") as f:
-        return read_nx_columns(f["entry/data"])
+        return legacy_index(read_nx_columns(f["entry/data"]))
 
 
 def read_table(path: str | Path, *, frame: int | None = None,

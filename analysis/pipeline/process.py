@@ -60,6 +60,7 @@ from analysis.detection.curves import Peaks, Tracks
 from analysis.detection.rejections import Rejections
 from analysis.errors import CameraMismatchError, MetadataError
 from analysis.formats.exposure import Exposure, read_exposure
+from analysis.formats.frame_metadata import shot_time_s
 from analysis.lightfield.background import BackgroundMap, estimate_background
 from analysis.lightfield.refocus import default_alphas, products, refocus_stack, subaperture_image
 from analysis.lightfield.samples import background_and_noise, select_samples
@@ -156,7 +157,8 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                       exposure_name=exposure.name, exposure_sha1=exposure.sha1, serial=exposure.serial,
                       white_sha1=calibration.white_sha1, curves=curves,
                       stack=stack if keep_stack else None, subaperture=sub if keep_stack else None,
-                      threshold=threshold, rejected=dropped, drift=None if drift is None else drift.to_dict())
+                      threshold=threshold, rejected=dropped, drift=None if drift is None else drift.to_dict(),
+                      shot_time=shot_time_s(exposure.metadata))
 
     fraction, count = saturated_fraction(exposure.image, model.white_level)
     if fraction > SATURATED_FRAME_FRACTION:
@@ -346,7 +348,7 @@ def _particle_table(peaks: Peaks, tracks: Tracks | None, alphas: np.ndarray, tab
         curves = np.empty((n, alphas.size), dtype=np.float32)
         brightness = np.empty(n)
     pitch = float(np.hypot(*table.basis_m[:, 0]))
-    particles = {"particle": np.arange(n, dtype=np.int64), "x": peaks.x, "y": peaks.y, "alpha": peaks.alpha,
+    particles = {"index": np.arange(n, dtype=np.int64), "x": peaks.x, "y": peaks.y, "alpha": peaks.alpha,
                  "X": X, "Y": Y, "Z": Z, "brightness": np.asarray(brightness, float), "peak_height": peaks.peak_height,
                  "peak_width": peaks.peak_width, "residual": peaks.residual, "prominence": peaks.prominence,
                  "alpha_std": nan if fit is None else fit.alpha_spread,

@@ -7,7 +7,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
@@ -15,6 +15,9 @@ from analysis.camera.image_grid import ImageGrid
 from analysis.formats.particle_table import COLUMNS, combine, write_csv, write_hdf5
 
 from .params import PipelineParams
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 
 @dataclass
@@ -24,7 +27,8 @@ class Result:
     Attributes
     ----------
     particles : dict of str to ndarray
-        The particle table by column (:data:`COLUMNS`): ``particle`` (0..n-1), ``x, y``
+        The particle table by column (:data:`COLUMNS`): ``index`` (0..n-1, by image position; a
+        trajectory id, trackpy's ``particle``, comes with linking: :mod:`analysis.tracking`), ``x, y``
         (output-image pixels, integer values at pixel centres), ``alpha``, ``X, Y, Z`` (mm,
         camera frame; NaN without a usable depth model), ``brightness`` (mean intensity per
         pixel in the slice nearest ``alpha``), ``peak_height`` / ``peak_width`` (the fitted
@@ -57,6 +61,8 @@ class Result:
     rejected : dict of str to ndarray
         The candidates that did not become particles (``x, y, alpha, X, Y, Z, intensity,
         residual, reason``; the reasons: :data:`analysis.detection.rejections.REASONS`).
+    shot_time : float or None
+        When the exposure was taken (s since 1970, UTC, from the metadata's clock); None without one.
     drift : dict or None
         How far the micro-lens lattice had moved since the white image, as the exposure showed it
         (:class:`analysis.calibration.drift.LatticeDrift`); None where it showed too little.
@@ -79,13 +85,30 @@ class Result:
     threshold: float = math.nan
     rejected: dict[str, np.ndarray] = field(default_factory=dict)
     drift: dict | None = None
+    shot_time: float | None = None
 
     def __len__(self) -> int:
-        return int(self.particles["particle"].size)
+        return int(self.particles["index"].size)
 
     def to_columns(self) -> dict[str, list]:
         """The particle table as plain lists, by column."""
         return {name: self.particles[name].tolist() for name in COLUMNS}
+
+    def to_dataframe(self, *, frame: int = 0, t: float = 0.0) -> "pd.DataFrame":
+        """The particle table as a pandas DataFrame in trackpy's conventions: ``frame`` and ``t``
+        (s) first, then the columns of :data:`COLUMNS`, so that ``trackpy.link`` and
+        :func:`analysis.tracking.trajectories.link` take a concatenation of shots as it is.
+
+        Examples
+        --------
+        >>> import pandas as pd                                        # doctest: +SKIP
+        >>> run = pd.concat([r.to_dataframe(frame=k, t=k * 1.0) for k, r in enumerate(results)])  # doctest: +SKIP
+        """
+        import pandas as pd
+
+        n = len(self)
+        return pd.DataFrame({"frame": np.full(n, frame, np.int64), "t": np.full(n, float(t)),
+                             **{name: np.asarray(values) for name, values in self.particles.items()}})
 
     def to_csv(self, path: str | Path) -> Path:
         """Write the particle table as CSV (header row, one row per particle)."""
@@ -108,12 +131,13 @@ class Result:
                 "warnings": self.warnings, "exposure_name": self.exposure_name,
                 "exposure_sha1": self.exposure_sha1, "serial": self.serial, "white_sha1": self.white_sha1,
                 "threshold": self.threshold, "alphas": self.alphas.tolist(),
-                "grid": dataclasses.asdict(self.grid), "drift": self.drift}
+                "grid": dataclasses.asdict(self.grid), "drift": self.drift, "shot_time": self.shot_time}
 
 
 def write_results_hdf5(results: Sequence[Result], path: str | Path) -> Path:
     """One NeXus file of one exposure's particles, or a batch's (with a ``frame`` column), with each
     exposure's provenance, curves and, when kept, stack and sub-aperture image."""
-    columns = dict(results[0].particles) if len(results) == 1 else combine(r.particles for r in results)
+    columns = dict(results[0].particles) if len(results) == 1 else combine(
+        (r.particles for r in results), times=[r.shot_time for r in results])
     return write_hdf5(path, columns, parameters=results[0].params.to_dict() if results else {},
                       frames=[r.nexus_frame() for r in results])

@@ -29,6 +29,7 @@ from .camera import (DEFAULT_LENS, DEFAULT_SERIAL, ELECTRONS_PER_DN, F01_SIZE, L
     white_normalized_responses)
 from .camera_effects import CameraEffects
 from .chamber import ChamberLight
+from .dynamics import Motion, moved_scenario, simulate_motion
 from .realism import Realism
 from .render import (BLUR_SIGMA_PX, ParticleTruth, channel_response_map, in_view, particle_truth, read_out,
     render_exposure, white_coverage)
@@ -52,6 +53,11 @@ TRUTH_COLUMNS = {
     "y": "px, as x",
     "blur_pitches": "defocus blur diameter on the MLA in lens pitches",
     "brightness": "DN above black of a fully lit green pixel",
+}
+#: Columns a run's truth tables (``--count`` above 1) add: the particle's velocity and shell.
+MOTION_COLUMNS = {
+    "vX": "mm/s, camera frame", "vY": "mm/s", "vZ": "mm/s",
+    "shell": "shell of a ball the particle's cage lies on (0 innermost); -1 for other clusters",
 }
 
 
@@ -97,16 +103,19 @@ class SimulationFiles:
         return self.out_dir / "calibration"
 
 
-def truth_csv_bytes(particles: Particles, truth: ParticleTruth, index: np.ndarray) -> bytes:
-    """The truth table: one row per particle, columns `TRUTH_COLUMNS`."""
+def truth_csv_bytes(particles: Particles, truth: ParticleTruth, index: np.ndarray,
+                    velocity: np.ndarray | None = None, shell: np.ndarray | None = None) -> bytes:
+    """The truth table: one row per particle, columns `TRUTH_COLUMNS` (and `MOTION_COLUMNS` given
+    the velocities (n, 3) and shells of a moving cluster)."""
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(TRUTH_COLUMNS)
+    writer.writerow(list(TRUTH_COLUMNS) + (list(MOTION_COLUMNS) if velocity is not None else []))
     for row in range(len(particles)):
+        motion = [] if velocity is None else [f"{v:.6f}" for v in velocity[row]] + [int(shell[row])]
         writer.writerow([int(index[row]),
                          f"{particles.x_mm[row]:.6f}", f"{particles.y_mm[row]:.6f}", f"{particles.z_mm[row]:.6f}",
                          f"{truth.alpha[row]:.8f}", f"{truth.x_px[row]:.4f}", f"{truth.y_px[row]:.4f}",
-                         f"{truth.blur_pitches[row]:.4f}", f"{particles.brightness_dn[row]:.2f}"])
+                         f"{truth.blur_pitches[row]:.4f}", f"{particles.brightness_dn[row]:.2f}"] + motion)
     return buf.getvalue().encode("ascii")
 
 
@@ -122,12 +131,14 @@ def mean_nn_distance_mm(particles: Particles) -> float:
 def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count: int = 1, size: int = F01_SIZE,
                    brightness_dn: float = 1800.0, background_dn: float = 40.0, serial: str = DEFAULT_SERIAL,
                    centre_z_mm: float | None = None, realism: Realism | None = None,
-                   progress: Callable[[str], None] | None = None, front_optics: FrontOptics | None = None,
-                   target: DotTarget | None = None) -> SimulationFiles:
+                   motion: Motion | None = None, progress: Callable[[str], None] | None = None,
+                   front_optics: FrontOptics | None = None, target: DotTarget | None = None) -> SimulationFiles:
     """Simulate a scenario and write it as the camera's files, with its truth.
 
     Writes ``IMG_nnnn.lfp``, ``IMG_nnnn.RAW`` + ``.TXT`` and ``IMG_nnnn.truth.csv`` for each of
-    ``count`` exposures (the cluster moves a little between them), ``calibration/MOD_nnnn.RAW`` +
+    ``count`` exposures (the cluster moves between them as ``motion`` says, one shot per
+    ``motion.interval_s`` on the metadata clock; the truth then has velocities and shells),
+    ``calibration/MOD_nnnn.RAW`` +
     ``.TXT`` white images, and ``scenario.json`` (docs/interfaces.md).
 
     Parameters
@@ -158,6 +169,9 @@ def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count:
         metadata stay the ideal camera's, so the pipeline is told none of them. The parameters,
         and what they resolve to (second stop, defects on this sensor, reflections), go into
         ``scenario.json`` under ``realism``.
+    motion : Motion, optional
+        How the cluster moves between exposures (:class:`analysis.simulation.dynamics.Motion`,
+        default ``Motion()``); recorded in ``scenario.json`` with the shell hops it made.
     progress : callable, optional
         Called with a line of text before each long step.
     front_optics : FrontOptics, optional
@@ -199,9 +213,13 @@ def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count:
     chamber = ChamberLight.build(realism, seed=seed) if on & set(CHAMBER_EFFECTS) else None
     files = SimulationFiles(out_dir=out)
     frames = []
+    motion = Motion() if motion is None else motion
+    moving = count > 1 and target is None  # a target's plate stands still at each stage position
+    shots, hops = simulate_motion(scenario, motion, count, seed=[seed, 0x40710]) if moving else ([], [])
+    start = np.datetime64("2021-06-01T09:00:00.000")
     for k in range(1, count + 1):
         frame_rng = np.random.default_rng([seed, k])
-        current = scenario if k == 1 else scenario.jittered(frame_rng)
+        current = moved_scenario(scenario, shots[k - 1]) if shots else scenario
         if target is not None:
             current = replace(scenario, particles=target.particles(target.positions_mm[k - 1], frame_rng))
         seen = current.particles if front is None else Particles(
@@ -214,9 +232,9 @@ def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count:
         say(f"{name}: rendering {len(shown)} of {len(current.particles)} particles on {size}x{size} px")
         image = render_exposure(model, seen.subset(keep), seed=int(frame_rng.integers(2 ** 63)),
                                 background_dn=current.background_dn, camera=camera, chamber=chamber)
-        minute, second = divmod((k - 1) % 3600, 60)  # one exposure per second from 09:00
-        frame_meta = simulated_camera_metadata(lens=DEFAULT_LENS, size=size,
-                                               zulu_time=f"2021-06-01T09:{minute:02d}:{second:02d}.000Z")
+        t_s = shots[k - 1].t_s if shots else 0.0  # from 09:00, one shot per motion.interval_s
+        stamp = start + np.timedelta64(int(round(t_s * 1000)), "ms")
+        frame_meta = simulated_camera_metadata(lens=DEFAULT_LENS, size=size, zulu_time=f"{stamp}Z")
         exposure = Exposure(image=image, metadata=frame_meta, private_metadata=private, name=name)
         say(f"{name}: writing .lfp, .RAW + .TXT, truth")
         files.lfp.append(write_lfp(exposure, out / f"{name}.lfp"))
@@ -225,8 +243,11 @@ def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count:
         files.txt.append(txt_path)
         shown_truth = ParticleTruth(*(np.asarray(a)[keep] for a in (truth.alpha, truth.x_px, truth.y_px,
                                                                      truth.blur_pitches)))
-        files.truth.append(write_atomic(out / f"{name}.truth.csv", truth_csv_bytes(shown, shown_truth, keep)))
-        frames.append({"name": name, "sha1": exposure.sha1, "particles_in_view": int(keep.size),
+        motion_truth = {} if not shots else {"velocity": shots[k - 1].velocity_mm_s[keep],
+                                             "shell": shots[k - 1].shell[keep]}
+        files.truth.append(write_atomic(out / f"{name}.truth.csv",
+                                        truth_csv_bytes(shown, shown_truth, keep, **motion_truth)))
+        frames.append({"name": name, "sha1": exposure.sha1, "t_s": t_s, "particles_in_view": int(keep.size),
                        "alpha_range": [float(shown_truth.alpha.min()), float(shown_truth.alpha.max())]
                        if keep.size else None,
                        "mean_nn_distance_mm": mean_nn_distance_mm(shown)})
@@ -246,6 +267,9 @@ def write_scenario(out_dir: str | Path, scenario_name: str, seed: int, *, count:
         "noise": {"electrons_per_dn": ELECTRONS_PER_DN, "read_noise_dn": READ_NOISE_DN,
                   "blur_sigma_px": BLUR_SIGMA_PX, "laser_532_response": LASER_532_RESPONSE},
     }
+    if shots:
+        doc["motion"] = {**motion.to_dict(), "hops": hops}
+        doc["truth_columns"] = {**TRUTH_COLUMNS, **MOTION_COLUMNS}
     if not realism.is_ideal:
         doc["realism"] = _realism_doc(realism, model, camera, chamber)
     files.scenario_json = write_atomic(out / "scenario.json", (json.dumps(doc, indent=2) + "\n").encode())

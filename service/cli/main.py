@@ -19,6 +19,8 @@ import sys
 COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("simulate", "write a simulated F01 exposure with known particle positions"),
     "process": ("process_cmd", "3D particle coordinates from raw exposures (.lfp, .RAW+.TXT, or folders)"),
+    "track": ("track_cmd", "process a run's exposures and link them into 3D trajectories"),
+    "link": ("link_cmd", "link a processed run's particle table into 3D trajectories"),
     "validate-plane": ("validate_plane_cmd", "plane fit, tilt and depth scatter of a particle table"),
     "score": ("score_cmd", "recall, precision and errors of a particle table against simulated truth"),
     "inspect": ("inspect_cmd", "show a Lytro file's sections, SHA-1 status and key metadata as JSON"),

@@ -45,9 +45,6 @@ def default_cache_dir() -> Path:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from analysis.pipeline.params import PipelineParams
-
-    d = PipelineParams()
     p = subparsers.add_parser(
         "process", help="3D particle coordinates from raw exposures (.lfp, .RAW+.TXT, or folders)",
         description=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -66,6 +63,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="also write the refocused images, sub-aperture image and brightness curves (HDF5)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
+    add_pipeline_arguments(p)
+    p.set_defaults(func=run)
+
+
+def add_pipeline_arguments(p: argparse.ArgumentParser) -> None:
+    """The pipeline's options (refocus, detection and depth, physical coordinates), shared by
+    ``process`` and ``track``; :func:`params_from_args` reads them."""
+    from analysis.pipeline.params import PipelineParams
+
+    d = PipelineParams()
     g = p.add_argument_group("refocus")
     g.add_argument("--alpha-min", type=float, default=None,
                    help="refocus range, with --alpha-max (default: the range that holds the exposure's particles, "
@@ -105,7 +112,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     g.add_argument("--depth-per-alpha-mm", type=float, default=None, help="dZ/dalpha (negative for a normal lens)")
     g.add_argument("--reference-alpha", type=float, default=d.reference_alpha)
     g.add_argument("--reference-z-mm", type=float, default=d.reference_z_mm)
-    p.set_defaults(func=run)
 
 
 def params_from_args(args: argparse.Namespace) -> Any:
@@ -217,15 +223,15 @@ def run(args: argparse.Namespace) -> int:
     calibrations = _Calibrations(args.calibration, cache_dir)
     coordinates = _Coordinates(args.metric_calibration)
     cache = Cache(directory=cache_dir)
-    say = _Say(quiet=args.quiet)
-    _load_kernels(say)
-    bar = _progress_bar(len(files), quiet=args.quiet)
+    say = Say(quiet=args.quiet)
+    load_kernels(say)
+    bar = progress_bar(len(files), quiet=args.quiet)
     results, summary, failed = [], [], 0
     for index, path in enumerate(files):
         entry: dict[str, Any] = {"exposure": str(path)}
         try:
             exposure = read_exposure(path)
-            report = _Progress(bar, say, index, len(files), path.name)
+            report = ExposureProgress(bar, say, index, len(files), path.name)
             result = process(exposure, calibrations(exposure), params, keep_stack=args.save_stack,
                              progress=report, cache=cache, coordinates=coordinates(exposure))
         except (AnalysisError, OSError) as exc:
@@ -257,7 +263,7 @@ def run(args: argparse.Namespace) -> int:
         if len(results) == 1:
             _write_one(results[0], out, save_stack=args.save_stack)
         elif out.suffix.lower() == ".csv":
-            write_csv(combine(r.particles for r in results), out)
+            write_csv(combine((r.particles for r in results), times=[r.shot_time for r in results]), out)
             if args.save_stack:
                 write_results_hdf5(results, _stack_path(out))
         else:
@@ -280,18 +286,18 @@ def _write_one(result: Any, target: Path, *, save_stack: bool) -> None:
         result.to_hdf5(target)
 
 
-class _Say:
+class Say:
     """Progress lines on stderr, unless --quiet."""
 
-    def __init__(self, *, quiet: bool) -> None:
-        self.quiet = quiet
+    def __init__(self, *, quiet: bool, prog: str = "process") -> None:
+        self.quiet, self.prog = quiet, prog
 
     def __call__(self, line: str) -> None:
         if not self.quiet:
-            print(f"plenodust process: {line}", file=sys.stderr, flush=True)
+            print(f"plenodust {self.prog}: {line}", file=sys.stderr, flush=True)
 
 
-def _load_kernels(say: _Say) -> None:
+def load_kernels(say: Say) -> None:
     # Compiling the kernels takes about half a minute the first time after an install (and a
     # second to load them after): say so, rather than sit silent in the first exposure.
     from analysis.pipeline.process import warm_up
@@ -302,7 +308,7 @@ def _load_kernels(say: _Say) -> None:
         warm_up()
 
 
-def _progress_bar(total: int, *, quiet: bool):
+def progress_bar(total: int, *, quiet: bool):
     if quiet or not sys.stderr.isatty():
         return None
     from tqdm import tqdm
@@ -311,12 +317,12 @@ def _progress_bar(total: int, *, quiet: bool):
                 bar_format="{desc} {percentage:3.0f}%|{bar}| {n:.2f}/{total} [{elapsed}<{remaining}]")
 
 
-class _Progress:
+class ExposureProgress:
     """The pipeline's progress callback, ``(fraction, stage)`` with the fraction weighted by the
     stages' cost: on a terminal the bar shows the stage running; off a terminal each new stage is
     one line."""
 
-    def __init__(self, bar: Any, say: _Say, index: int, total: int, name: str) -> None:
+    def __init__(self, bar: Any, say: Say, index: int, total: int, name: str) -> None:
         self.bar, self.say, self.index, self.total, self.name = bar, say, index, total, name
         self.stage: str | None = None
 

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from analysis.errors import AnalysisError, ParameterError
 from analysis.simulation.camera import F01_SIZE
+from analysis.simulation.dynamics import Motion
 from analysis.simulation.realism import EFFECTS, Realism
 from analysis.simulation.scenario_files import write_scenario
 from analysis.simulation.scenarios import SCENARIO_NAMES
@@ -31,7 +32,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--seed", type=int, default=1, help="random seed; the same seed writes the same bytes")
     parser.add_argument("--out", type=Path, required=True, help="folder to write into (created)")
     parser.add_argument("--count", type=int, default=1,
-                        help="number of exposures IMG_0001..N; the cluster moves slightly between them")
+                        help="number of exposures IMG_0001..N, one per --interval on the metadata clock; the cluster "
+                             "moves between them (see the motion options)")
     parser.add_argument("--size", type=int, default=F01_SIZE,
                         help=f"sensor size in pixels (default {F01_SIZE}, the full F01); a smaller, centred crop "
                              "(multiple of 4) for quick tests keeps only the particles that fit on it")
@@ -48,6 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     add_optics_arguments(parser)
     add_realism_arguments(parser)
+    add_motion_arguments(parser)
     parser.set_defaults(func=run)
 
 
@@ -89,6 +92,39 @@ def optics_from_args(args: argparse.Namespace) -> tuple:
     if args.positions:
         return front, DotTarget(positions_mm=tuple(args.positions), **plate)
     return front, default_target(front, **plate)
+
+
+def add_motion_arguments(parser: argparse.ArgumentParser) -> None:
+    """How the cluster moves between the exposures of ``--count N``."""
+    m = Motion()
+    g = parser.add_argument_group(
+        "motion", "With --count above 1 the cluster moves between shots: each particle in a harmonic cage around "
+                  "its site (Langevin: the gas's friction and kicks at a temperature), the sites turning and "
+                  "drifting with the gas, and in a ball particles hopping between shells. The truth tables "
+                  "get vX, vY, vZ (mm/s) and shell; scenario.json records the motion and every hop.")
+    g.add_argument("--interval", type=float, default=m.interval_s, metavar="S",
+                   help=f"seconds between shots on the metadata clock (default {m.interval_s:g})")
+    g.add_argument("--temperature-ev", type=float, default=m.temperature_ev, metavar="EV",
+                   help=f"kinetic temperature of the particles (default {m.temperature_ev:g} eV)")
+    g.add_argument("--damping", type=float, default=m.damping_per_s, metavar="PER_S",
+                   help=f"friction rate of the gas (default {m.damping_per_s:g} /s)")
+    g.add_argument("--cage", type=float, default=m.cage_per_s, metavar="RAD_S",
+                   help=f"angular frequency of each particle's cage (default {m.cage_per_s:g} rad/s)")
+    g.add_argument("--spin", type=float, default=m.rotation_deg_per_s, metavar="DEG_S",
+                   help=f"rotation of the cluster about the image's vertical (default {m.rotation_deg_per_s:g} deg/s)")
+    g.add_argument("--drift", type=float, nargs=3, default=list(m.drift_mm_per_s), metavar=("VX", "VY", "VZ"),
+                   help="drift of the cluster's centre in mm/s (default %s)" % " ".join(f"{v:g}" for v in m.drift_mm_per_s))
+    g.add_argument("--hop-rate", type=float, default=m.hop_rate_per_s, metavar="PER_S",
+                   help=f"shell hops per second in a ball (default {m.hop_rate_per_s:g})")
+    g.add_argument("--particle-diameter-um", type=float, default=m.particle_diameter_um,
+                   help=f"particle diameter (default {m.particle_diameter_um:g} um, the paper's MF particles)")
+
+
+def motion_from_args(args: argparse.Namespace) -> Motion:
+    """The :class:`Motion` the options ask for."""
+    return Motion(interval_s=args.interval, temperature_ev=args.temperature_ev, damping_per_s=args.damping,
+                  cage_per_s=args.cage, rotation_deg_per_s=args.spin, drift_mm_per_s=tuple(args.drift),
+                  hop_rate_per_s=args.hop_rate, particle_diameter_um=args.particle_diameter_um)
 
 
 def add_realism_arguments(parser: argparse.ArgumentParser) -> None:
@@ -187,8 +223,8 @@ def run(args: argparse.Namespace) -> int:
         front, target = optics_from_args(args)
         files = write_scenario(args.out, args.scenario, args.seed, count=args.count, size=args.size,
                                brightness_dn=args.brightness, background_dn=args.background,
-                               centre_z_mm=args.centre_z, realism=realism, progress=progress,
-                               front_optics=front, target=target, **serial)
+                               centre_z_mm=args.centre_z, realism=realism, motion=motion_from_args(args),
+                               progress=progress, front_optics=front, target=target, **serial)
     except AnalysisError as exc:
         print(f"plenodust simulate: {exc}", file=sys.stderr)
         return 2

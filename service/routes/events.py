@@ -15,7 +15,7 @@ router = APIRouter(prefix="/api/v1", tags=["events"])
 
 
 @router.get("/events", response_class=EventSourceResponse,
-            summary="Server-sent events: 'job' (state, progress), 'result' (new particles), 'camera', 'run'")
+            summary="Server-sent events: 'job' (state, progress), 'result' (new particles), 'tracks' (shots linked), 'camera', 'run'")
 async def events(state: State,
                  last_event_id: Annotated[str | None, Header(alias="Last-Event-ID")] = None,
                  ) -> AsyncIterator[ServerSentEvent]:

@@ -6,12 +6,15 @@ import asyncio
 
 from typing import Annotated, Literal
 
+import numpy as np
 from fastapi import APIRouter, Body, Query, Request
 from fastapi.responses import FileResponse, Response
 from starlette.background import BackgroundTask
 
+from analysis.tracking.trajectories import LEADING_COLUMNS
 from service.deps import ApiKey, State
-from service.models import PROBLEM_RESPONSE, ParticleTable, RunExposurePage, RunList, RunName
+from service.models import (PROBLEM_RESPONSE, ParticleTable, RunExposurePage, RunList, RunName, RunSummaryTable,
+                            TrajectoryTable)
 from service.problems import Problem
 from service.settings import valid_run_name
 from service.tables import TableFormat, choose_format, table_response
@@ -82,3 +85,46 @@ async def run_particles(run: str, request: Request, state: State, format: TableF
     if columns is None:
         raise Problem(409, "No result yet", f"run {run!r} has no processed exposure yet", kind="no-result")
     return table_response(columns, fmt, meta={"run": run}, filename=run)
+
+
+_TABLE_RESPONSES = {200: {"content": {"text/csv": {"schema": {"type": "string"}},
+                                      "application/x-hdf5": {"schema": {"type": "string", "format": "binary"}}}},
+                    404: PROBLEM_RESPONSE, 406: PROBLEM_RESPONSE, 409: PROBLEM_RESPONSE}
+
+
+@router.get("/{run}/trajectories", summary="A run's particles linked into trajectories (trackpy's columns)",
+            response_model=TrajectoryTable, responses=_TABLE_RESPONSES)
+async def run_trajectories(run: str, request: Request, state: State, format: TableFormat | None = None,
+                           frame_min: Annotated[int, Query(ge=0, description="first frame")] = 0,
+                           frame_max: Annotated[int | None, Query(ge=0, description="last frame")] = None,
+                           particle: Annotated[int | None, Query(ge=0, description="one trajectory")] = None,
+                           ) -> Response:
+    """Rows of linked frames only (``particle`` >= 0), by frame: each new shot is linked as its result
+    arrives. ``frame_min``/``frame_max`` read only those frames' rows (a trail of the last few)."""
+    fmt = choose_format(request, format)
+    _known_run(state, run)
+    columns = await asyncio.to_thread(state.store.read_run_frames, run, frame_min, frame_max)
+    if columns is None or "frame" not in columns:
+        raise Problem(409, "No result yet", f"run {run!r} has no processed exposure yet", kind="no-result")
+    ids = np.asarray(columns.get("particle", np.full(len(columns["frame"]), -1)))
+    keep = ids >= 0
+    if particle is not None:
+        keep &= ids == particle
+    lead = [c for c in LEADING_COLUMNS if c in columns]
+    table = {name: np.asarray(columns[name])[keep] for name in lead + [c for c in columns if c not in lead]}
+    frames = sorted({int(f) for f in table["frame"].tolist()})
+    return table_response(table, fmt, meta={"run": run, "frames": frames}, filename=f"{run}-trajectories")
+
+
+@router.get("/{run}/summary", summary="A run's structure per shot: count, temperature, shells",
+            response_model=RunSummaryTable, responses=_TABLE_RESPONSES)
+async def run_summary(run: str, request: Request, state: State, format: TableFormat | None = None) -> Response:
+    """One row per linked shot (analysis.tracking.summary): the shot before the newest has central
+    velocities, the newest one-sided ones until the next shot comes."""
+    fmt = choose_format(request, format)
+    _known_run(state, run)
+    columns = await asyncio.to_thread(state.tracker.summary, run) if state.tracker is not None else None
+    if columns is None:
+        raise Problem(409, "No result yet", f"run {run!r} has no linked shot yet", kind="no-result")
+    return table_response(columns, fmt, meta={"run": run, "particle_mass_kg": state.tracker.mass_kg},
+                          filename=f"{run}-summary")

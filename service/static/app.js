@@ -4,7 +4,10 @@
 
 const API = "/api/v1";
 const $ = id => document.getElementById(id);
-const view = { run: null, exposure: null, table: null, info: null, curves: null, particle: 0, slice: 0 };
+const view = { run: null, exposure: null, table: null, info: null, curves: null, particle: 0, slice: 0,
+               trails: null, summary: null };
+// Trails: each particle's positions over this many shots up to the one shown.
+const TRAIL_SHOTS = 8;
 // Camera frame (docs/camera-model.md): X right, Y down as in the upright image, Z from the lens.
 // Every panel shows Y down, as the slice images do.
 const DARK = {
@@ -56,7 +59,7 @@ async function loadRuns() {
     li.dataset.run = r.run;
     li.className = r.run === view.run ? "sel" : "";
     li.innerHTML = `<span>${r.run}</span><span class="small">${r.done}/${r.exposures}${r.failed ? ` · ${r.failed} failed` : ""}</span>`;
-    li.onclick = () => { view.run = r.run; view.exposure = null; loadRuns(); loadExposures(true); };
+    li.onclick = () => { view.run = r.run; view.exposure = null; loadRuns(); loadExposures(true); loadSummary(); };
     return li;
   }));
 }
@@ -115,6 +118,7 @@ async function selectExposure(id) {
   let curves = null;
   try { curves = await getJSON(`${API}/exposures/${id}/curves`); } catch (e) { curves = null; }
   Object.assign(view, { table, info, curves });
+  await loadTrails();
   const n = table.count;
   view.particle = Math.min(view.particle, Math.max(0, n - 1));
   $("particle").replaceChildren(...Array.from({ length: n }, (_, i) => new Option(String(i), String(i))));
@@ -150,13 +154,15 @@ function drawAll() {
   const { x, y, z, unit, zname } = columns();
   const ids = x.map((_, i) => i);
   const open = ids.map(depthOpen);
+  const lines = unit === "mm" ? trailLines() : { x: [], y: [], z: [], ids: {} };
+  const trajectory = ids.map(i => lines.ids[i] === undefined ? "" : `<br>trajectory ${lines.ids[i]}`);
   const hover = `particle %{customdata}<br>X %{x:.3f} ${unit}<br>Y %{y:.3f} ${unit}<br>${zname} %{marker.color:.3f} ${unit}<extra></extra>`;
   const colourbar = { title: { text: `${zname} (${unit})`, side: "right" }, thickness: 10, len: 0.9, outlinewidth: 0 };
   plot("scatter", [{
     type: "scatter3d", mode: "markers", x, y, z, customdata: ids,
     marker: { size: 3.5, color: z, colorscale: COLOURS, colorbar: colourbar, opacity: 0.95 },
     hovertemplate: hover.replace("%{marker.color:.3f}", "%{z:.3f}"),
-  }, selectedTrace3d(x, y, z)], {
+  }, selectedTrace3d(x, y, z), trailTrace(lines, true)], {
     ...DARK, margin: { l: 0, r: 0, t: 0, b: 0 },
     scene: {
       aspectmode: "data", dragmode: "turntable",
@@ -171,13 +177,46 @@ function drawAll() {
     type: "scatter", mode: "markers", x, y, customdata: ids,
     marker: { size: 8, color: z, colorscale: COLOURS, colorbar: colourbar,
               symbol: open.map(o => o ? "circle-open" : "circle"), line: { width: 1.5 } },
-    text: z.map((v, i) => `${zname} ${v === null ? "–" : v.toFixed(3)} ${unit}${open[i] ? "<br>depth left open by its pixels" : ""}`),
+    text: z.map((v, i) => `${zname} ${v === null ? "–" : v.toFixed(3)} ${unit}${open[i] ? "<br>depth left open by its pixels" : ""}${trajectory[i]}`),
     hovertemplate: `particle %{customdata}<br>X %{x:.3f} ${unit}<br>Y %{y:.3f} ${unit}<br>%{text}<extra></extra>`,
-  }, selectedTrace2d(x, y)], {
+  }, selectedTrace2d(x, y), trailTrace(lines, false)], {
     ...DARK, showlegend: false, hovermode: "closest",
     xaxis: { ...AXIS, title: { text: `X (${unit}) →` }, constrain: "domain" },
     yaxis: { ...AXIS, title: { text: `Y (${unit}), down ↓` }, autorange: "reversed", scaleanchor: "x", scaleratio: 1 },
   }, i => pickParticle(i, { jump: true }));
+}
+
+// -- trajectories ----------------------------------------------------------------------------
+
+async function loadTrails() {
+  const t = view.table;
+  view.trails = null;
+  if (!t || t.frame === undefined || t.frame === null) return;
+  const first = Math.max(0, t.frame - TRAIL_SHOTS);
+  try {
+    view.trails = await getJSON(`${API}/runs/${encodeURIComponent(t.run)}/trajectories?frame_min=${first}&frame_max=${t.frame}`);
+  } catch (e) { view.trails = null; }  // 409 until the run's first shot is linked
+}
+
+// One line per trajectory (positions in time order), separated by gaps, for the 3D and top views.
+function trailLines() {
+  const tr = view.trails;
+  const out = { x: [], y: [], z: [], ids: {} };
+  if (!tr || !tr.count) return out;
+  const c = tr.columns, rows = c.frame.map((_, i) => i);
+  rows.sort((a, b) => (c.particle[a] - c.particle[b]) || (c.frame[a] - c.frame[b]));
+  rows.forEach((i, k) => {
+    if (k && c.particle[rows[k - 1]] !== c.particle[i]) { out.x.push(null); out.y.push(null); out.z.push(null); }
+    out.x.push(c.X[i]); out.y.push(c.Y[i]); out.z.push(c.Z[i]);
+    if (c.frame[i] === view.table.frame) out.ids[c.index[i]] = c.particle[i];
+  });
+  return out;
+}
+
+function trailTrace(lines, three) {
+  const base = { mode: "lines", x: lines.x, y: lines.y, hoverinfo: "skip", showlegend: false, connectgaps: false,
+                 line: { color: "rgba(255,255,255,0.55)", width: three ? 2.5 : 1.5 } };
+  return three ? { ...base, type: "scatter3d", z: lines.z } : { ...base, type: "scatter" };
 }
 
 function selectedTrace3d(x, y, z) {
@@ -295,6 +334,52 @@ function drawSlice() {
   img.src = `${API}/exposures/${view.exposure}/slices/${k}`;
 }
 
+// -- the run over time --------------------------------------------------------------------
+
+async function loadSummary() {
+  if (!view.run) return;
+  try { view.summary = await getJSON(`${API}/runs/${encodeURIComponent(view.run)}/summary`); }
+  catch (e) { view.summary = null; }
+  drawTimeline();
+}
+
+function drawTimeline() {
+  const s = view.summary;
+  if (!s || !s.count) { message("timeline", "no linked shots in this run yet"); return; }
+  const c = s.columns, t = c.t;
+  const line = (y, name, colour, axis, err) => ({
+    type: "scatter", mode: "lines+markers", x: t, y, name, xaxis: "x", yaxis: axis, marker: { size: 4 },
+    line: { color: colour, width: 1.5 }, error_y: err ? { type: "data", array: err, visible: true, thickness: 1, width: 0 } : undefined,
+    hovertemplate: `${name} %{y:.4g}<br>t %{x:.1f} s<extra></extra>`,
+  });
+  const data = [line(c.count, "particles", "#4fc3f7", "y"),
+                line(c.T_xy_eV, "T lateral (X, Y)", "#ffd54f", "y2", c.T_xy_err_eV),
+                line(c.T_eV, "T (X, Y, Z)", "#ff8a65", "y2", c.T_err_eV)];
+  const shellColours = ["#81c784", "#ba68c8", "#4db6ac", "#f06292", "#aed581"];
+  for (let k = 0; c[`shell${k}_n`]; k++) {
+    data.push(line(c[`shell${k}_n`], `shell ${k + 1} (r ≈ ${median(c[`shell${k}_r_mm`]).toFixed(2)} mm)`,
+                   shellColours[k % shellColours.length], "y3", c[`shell${k}_n_err`]));
+  }
+  const noise = ["X", "Y", "Z"].map(a => c[`noise_${a}_mm`] ? median(c[`noise_${a}_mm`]) : NaN);
+  $("run-info").textContent = `run ${s.run} · ${s.count} linked shots · position noise X ${fmtUm(noise[0])}, `
+    + `Y ${fmtUm(noise[1])}, Z ${fmtUm(noise[2])} (taken out of the temperatures) · particle mass ${s.particle_mass_kg.toExponential(2)} kg`;
+  plot("timeline", data, {
+    ...DARK, margin: { l: 62, r: 12, t: 8, b: 40 }, showlegend: true, hovermode: "x unified",
+    legend: { x: 1.01, xanchor: "left", y: 1, bgcolor: "rgba(11,15,19,0.75)", font: { size: 10 } },
+    xaxis: { ...AXIS, title: { text: "t (s since the run's first shot)" }, anchor: "y3" },
+    yaxis: { ...AXIS, domain: [0.70, 1], title: { text: "particles" }, rangemode: "tozero" },
+    yaxis2: { ...AXIS, domain: [0.36, 0.64], title: { text: "T (eV)" }, tickformat: ".4~f", rangemode: "tozero" },
+    yaxis3: { ...AXIS, domain: [0, 0.30], title: { text: "per shell" }, rangemode: "tozero" },
+  });
+}
+
+function median(values) {
+  const v = values.filter(x => x !== null && Number.isFinite(x)).sort((a, b) => a - b);
+  return v.length ? v[Math.floor(v.length / 2)] : NaN;
+}
+
+function fmtUm(mm) { return Number.isFinite(mm) ? `${(mm * 1000).toFixed(1)} µm` : "–"; }
+
 // -- interaction -------------------------------------------------------------------------
 
 $("particle").addEventListener("change", e => pickParticle(+e.target.value, { jump: true }));
@@ -317,7 +402,7 @@ function refreshSoon(pickNewest) {
   setTimeout(async () => {
     const pick = pickPending;
     refreshPending = false; pickPending = false;
-    try { await loadRuns(); await loadExposures(pick); await loadHeader(); } catch (e) { status(String(e)); }
+    try { await loadRuns(); await loadExposures(pick); await loadHeader(); await loadSummary(); } catch (e) { status(String(e)); }
   }, 150);
 }
 
@@ -331,13 +416,20 @@ function connect() {
     refreshSoon(true);
   });
   source.addEventListener("camera", () => loadHeader());
+  // A shot was linked: the run's time plots and the trails change.
+  source.addEventListener("tracks", async ev => {
+    const data = JSON.parse(ev.data);
+    if (data.run !== view.run) return;
+    await loadSummary();
+    if (view.table && data.frames.includes(view.table.frame)) { await loadTrails(); drawAll(); pickParticle(view.particle); }
+  });
   source.addEventListener("run", () => refreshSoon(false));
   source.onerror = () => { $("stream").textContent = "reconnecting"; $("stream").className = "pill off"; };
 }
 
 (async () => {
-  ["scatter", "top", "curve", "slice-view"].forEach(id => message(id, "waiting for a result"));
-  try { await loadRuns(); await loadExposures(true); await loadHeader(); } catch (e) { status(String(e)); }
+  ["scatter", "top", "curve", "slice-view", "timeline"].forEach(id => message(id, "waiting for a result"));
+  try { await loadRuns(); await loadExposures(true); await loadHeader(); await loadSummary(); } catch (e) { status(String(e)); }
   connect();
   // Battery, queue depth and the workers' warm-up change without events; a slow poll keeps them fresh.
   setInterval(loadHeader, 3000);

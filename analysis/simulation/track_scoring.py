@@ -1,0 +1,137 @@
+"""Linked trajectories scored against a simulated run's truth (``plenodust simulate --count N``).
+
+Each shot's found particles are paired with the true ones (:func:`analysis.simulation.scoring.match`,
+3D, within half the mean NN distance); then
+
+- a **link** is two consecutive observations of one found trajectory; it is right when both are
+  paired with the same true particle (``links_right``: the fraction of links whose two ends are
+  both paired that are right);
+- a **missed shot** is a true particle paired in frames ``k - 1`` and ``k + 1`` but not in ``k``; it is
+  bridged when the found ids on both sides are the same (``gaps_bridged``);
+- **fragments**: found trajectories per true particle (1 is perfect);
+- velocities: RMS of found minus true per axis (``velocity_rms_error_mm_s``);
+- the run's truth temperature: the true velocities' variance about the cluster's rigid motion,
+  per shot, times ``m / e`` (:func:`truth_temperature_ev`).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from analysis.tracking.temperature import shot_temperature, NoiseEstimate
+from analysis.tracking.units import particle_mass_kg
+
+from .scoring import match
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+
+def read_truth_run(folder: str | Path) -> pd.DataFrame:
+    """A simulated run's truth as one table: ``frame, t, particle, X, Y, Z`` and, for a moving
+    cluster, ``vX, vY, vZ, shell`` (from ``IMG_nnnn.truth.csv`` and ``scenario.json``)."""
+    import pandas as pd
+
+    folder = Path(folder)
+    doc = json.loads((folder / "scenario.json").read_text())
+    parts = []
+    for frame, exposure in enumerate(doc["exposures"]):
+        with open(folder / f"{exposure['name']}.truth.csv", newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        df = pd.DataFrame(rows).apply(pd.to_numeric)
+        df.insert(0, "t", float(exposure.get("t_s", frame)))
+        df.insert(0, "frame", frame)
+        parts.append(df)
+    return pd.concat(parts, ignore_index=True)
+
+
+def truth_temperature_ev(truth: pd.DataFrame, *, mass_kg: float | None = None) -> float:
+    """Mean over shots of the true velocities' kinetic temperature about the rigid motion (eV)."""
+    mass = particle_mass_kg() if mass_kg is None else mass_kg
+    noise = NoiseEstimate(np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3))
+    values = []
+    for _, shot in truth.groupby("frame"):
+        xyz = shot[["X", "Y", "Z"]].to_numpy(float)
+        v = shot[["vX", "vY", "vZ"]].to_numpy(float)
+        values.append(float(np.mean(shot_temperature(xyz, v, np.ones(len(v)), noise, mass_kg=mass).temperature_ev)))
+    return float(np.nanmean(values))
+
+
+def score_tracks(linked: pd.DataFrame, truth: pd.DataFrame, *, max_distance: float = 0.5) -> dict[str, Any]:
+    """Score a linked table against the truth (see the module docstring).
+
+    Parameters
+    ----------
+    linked : pandas.DataFrame
+        ``frame, particle, X, Y, Z`` and ``vX, vY, vZ``.
+    truth : pandas.DataFrame
+        From :func:`read_truth_run`.
+    max_distance : float
+        Largest found-to-true distance of a pairing, in mean NN distances.
+
+    Returns
+    -------
+    dict
+    """
+    truth_id = np.full(len(linked), -1, np.int64)
+    true_v = np.full((len(linked), 3), np.nan)
+    found_groups = linked.groupby("frame").indices
+    truth_groups = truth.groupby("frame").indices
+    paired_per_frame: dict[int, dict[int, int]] = {}
+    for frame, rows in found_groups.items():
+        if frame not in truth_groups:
+            continue
+        t_rows = truth_groups[frame]
+        f = {c: linked[c].to_numpy(float)[rows] for c in ("X", "Y", "Z")}
+        tt = {c: truth[c].to_numpy(float)[t_rows] for c in ("X", "Y", "Z")}
+        r, c = match(f, tt, max_distance=max_distance)
+        ids = truth["particle"].to_numpy()[t_rows][c]
+        truth_id[rows[r]] = ids
+        if "vX" in truth.columns:
+            true_v[rows[r]] = truth[["vX", "vY", "vZ"]].to_numpy(float)[t_rows][c]
+        paired_per_frame[int(frame)] = dict(zip(ids.tolist(), linked["particle"].to_numpy()[rows[r]].tolist()))
+    particle = linked["particle"].to_numpy()
+    frame = linked["frame"].to_numpy()
+    order = np.lexsort((frame, particle))
+    p, tid = particle[order], truth_id[order]
+    link = (p[1:] == p[:-1]) & (p[1:] >= 0)
+    judged = link & (tid[1:] >= 0) & (tid[:-1] >= 0)
+    right = judged & (tid[1:] == tid[:-1])
+    frames = sorted(paired_per_frame)
+    gaps = bridged = 0
+    for k in frames[1:-1]:
+        before, now, after = paired_per_frame.get(k - 1, {}), paired_per_frame[k], paired_per_frame.get(k + 1, {})
+        for true in set(before) & set(after) - set(now):
+            gaps += 1
+            bridged += int(before[true] == after[true])
+    fragments = []
+    for true in np.unique(truth_id[truth_id >= 0]):
+        fragments.append(np.unique(particle[(truth_id == true) & (particle >= 0)]).size)
+    found_v = linked[["vX", "vY", "vZ"]].to_numpy(float)
+    err = found_v - true_v
+    possible = 0
+    for k in frames[:-1]:
+        possible += len(set(paired_per_frame[k]) & set(paired_per_frame.get(k + 1, {})))
+    return {
+        "links": int(link.sum()), "links_judged": int(judged.sum()),
+        "links_right": float(right.sum() / judged.sum()) if judged.sum() else math.nan,
+        "links_wrong": int(judged.sum() - right.sum()),
+        "consecutive_truth_links": int(possible),
+        "gaps": gaps, "gaps_bridged": bridged,
+        "fragments_per_particle": float(np.mean(fragments)) if fragments else math.nan,
+        "detections_paired": float(np.mean(truth_id >= 0)) if len(truth_id) else math.nan,
+        "velocity_rms_error_mm_s": [_rms(err[:, a]) for a in range(3)],
+        "true_speed_rms_mm_s": [_rms(true_v[:, a]) for a in range(3)],
+    }
+
+
+def _rms(values: np.ndarray) -> float:
+    """RMS of the finite values (NaN where there are none)."""
+    finite = values[np.isfinite(values)]
+    return float(np.sqrt(np.mean(finite ** 2))) if finite.size else math.nan

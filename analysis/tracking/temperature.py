@@ -1,0 +1,249 @@
+"""Kinetic temperature from linked positions, with the position noise taken out.
+
+Velocities from positions carry the positions' errors: a central difference over ``dt`` adds
+``2 sigma^2 / dt^2`` to each component's variance, and depth errors (5 to 10 times the lateral
+ones) can double the apparent depth temperature. :func:`position_noise` measures ``sigma`` per
+axis from the run itself:
+
+1. For each lag ``tau`` = 1 ... ``lags`` frames, the particles' displacements from frame ``k`` to
+   ``k + tau`` with the cluster's rigid motion taken off (a Kabsch fit of the linked pairs, its six
+   degrees of freedom corrected for) give a mean squared displacement ``MSD(dt)`` per axis at the
+   pairs' mean time apart ``dt``.
+2. Noise adds the same ``2 sigma^2`` at every lag; motion grows with the lag: ``<v^2> dt^2`` while
+   it is ballistic, bending away as damping or the particle's cage act. A least-squares fit of
+   ``MSD(dt) = 2 sigma^2 + <v^2> dt^2 + c dt^4`` gives ``sigma`` (the intercept) and the bend.
+3. A shot's temperature (:func:`shot_temperature`) is then, per axis, the variance of its
+   particles' velocities about the cluster's rigid motion, less ``2 sigma^2 / dt^2``, divided by
+   ``1 + (c / <v^2>) dt^2`` (the bend's share at the velocities' own ``dt``), times ``m / e``.
+
+Uncertainties come from a jackknife over blocks of frames (noise) and the sampling error of a
+variance of ``n`` values (a shot).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .motion import kabsch
+from .units import ev_per_mm2_s2
+
+AXES = ("X", "Y", "Z")
+
+
+@dataclass(frozen=True)
+class NoiseEstimate:
+    """Position noise per axis and the fit it came from.
+
+    Attributes
+    ----------
+    sigma_mm, sigma_err_mm : ndarray of shape (3,)
+        Standard deviation of the position error per axis (X, Y, Z) and its uncertainty.
+    speed2_mm2_s2 : ndarray of shape (3,)
+        ``<v^2>`` per axis from the fit (about the rigid motion).
+    bend_s2 : ndarray of shape (3,)
+        ``c / <v^2>``: how the displacements bend away from ballistic, per s^2.
+    dt_s : ndarray of shape (L,)
+        Mean time apart of the pairs at each lag.
+    msd_mm2 : ndarray of shape (L, 3)
+        Mean squared displacement per lag and axis.
+    pairs : ndarray of shape (L,)
+        Displacements per lag.
+    """
+
+    sigma_mm: np.ndarray
+    sigma_err_mm: np.ndarray
+    speed2_mm2_s2: np.ndarray
+    bend_s2: np.ndarray
+    dt_s: np.ndarray = field(default_factory=lambda: np.empty(0))
+    msd_mm2: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
+    pairs: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+
+    @classmethod
+    def unknown(cls) -> NoiseEstimate:
+        nan = np.full(3, np.nan)
+        return cls(nan, nan.copy(), nan.copy(), np.zeros(3))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"sigma_mm": _list(self.sigma_mm), "sigma_err_mm": _list(self.sigma_err_mm),
+                "speed2_mm2_s2": _list(self.speed2_mm2_s2), "bend_s2": _list(self.bend_s2),
+                "dt_s": _list(self.dt_s), "msd_mm2": [_list(m) for m in self.msd_mm2],
+                "pairs": [int(p) for p in self.pairs]}
+
+
+def _list(values: np.ndarray) -> list:
+    return [None if not np.isfinite(v) else float(v) for v in np.asarray(values, float)]
+
+
+def trajectory_matrix(particle: np.ndarray, frame: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions as an array (frames, trajectories, 3), NaN where a trajectory is not seen; and the
+    sorted frame numbers. Rows with ``particle < 0`` are left out."""
+    ok = particle >= 0
+    frames, fi = np.unique(frame[ok], return_inverse=True)
+    _, pi = np.unique(particle[ok], return_inverse=True)
+    out = np.full((frames.size, pi.max() + 1 if pi.size else 0, 3), np.nan)
+    out[fi, pi] = xyz[ok]
+    return out, frames
+
+
+def rigid_residuals(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``b`` less the rigid motion (Kabsch) that best carries ``a`` onto it, scaled for the six
+    degrees of freedom the fit takes (so its mean square is unbiased)."""
+    r, t = kabsch(a, b)
+    res = b - (a @ r.T + t)
+    n = len(a)
+    return res * np.sqrt(3 * n / max(3 * n - 6, 1))
+
+
+def position_noise(particle: np.ndarray, frame: np.ndarray, t: np.ndarray, xyz: np.ndarray, *,
+                   lags: int = 4, blocks: int = 10) -> NoiseEstimate:
+    """Position noise per axis from the run's displacements at several lags (module docstring).
+
+    Parameters
+    ----------
+    particle, frame, t : ndarray of shape (n,)
+        Trajectory id, frame and time (s) of each row.
+    xyz : ndarray of shape (n, 3)
+        Positions (mm).
+    lags : int
+        Largest lag in frames (at least 2; 4 by default).
+    blocks : int
+        Blocks of frames for the jackknife's uncertainties.
+
+    Returns
+    -------
+    NoiseEstimate
+        ``unknown()`` where too few linked pairs exist.
+    """
+    positions, frames = trajectory_matrix(np.asarray(particle), np.asarray(frame), np.asarray(xyz, float))
+    times = np.full(frames.size, np.nan)
+    order = np.argsort(frame)
+    times = np.interp(frames, np.asarray(frame)[order], np.asarray(t, float)[order])
+    nf = frames.size
+    if nf < 3:
+        return NoiseEstimate.unknown()
+    block_of = np.minimum((np.arange(nf) * blocks) // nf, blocks - 1)
+    sums = np.zeros((blocks, lags, 3))
+    counts = np.zeros((blocks, lags))
+    dts = np.zeros((blocks, lags))
+    for k in range(nf):
+        for lag in range(1, lags + 1):
+            j = np.searchsorted(frames, frames[k] + lag)
+            if j >= nf or frames[j] != frames[k] + lag:
+                continue
+            both = np.all(np.isfinite(positions[k]), axis=1) & np.all(np.isfinite(positions[j]), axis=1)
+            if both.sum() < 8:
+                continue
+            res = rigid_residuals(positions[k][both], positions[j][both])
+            b = block_of[k]
+            sums[b, lag - 1] += np.sum(res ** 2, axis=0)
+            counts[b, lag - 1] += both.sum()
+            dts[b, lag - 1] += both.sum() * (times[j] - times[k])
+    estimate = _fit(sums.sum(0), counts.sum(0), dts.sum(0))
+    if estimate is None:
+        return NoiseEstimate.unknown()
+    sigma, speed2, bend = estimate
+    # Jackknife over blocks of frames.
+    leave = []
+    for b in range(blocks):
+        fit = _fit(sums.sum(0) - sums[b], counts.sum(0) - counts[b], dts.sum(0) - dts[b])
+        if fit is not None:
+            leave.append(fit[0])
+    m = len(leave)
+    err = np.sqrt((m - 1) / m * np.sum((np.array(leave) - np.mean(leave, axis=0)) ** 2, axis=0)) if m > 2 \
+        else np.full(3, np.nan)
+    total_counts = counts.sum(0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        msd = sums.sum(0) / total_counts[:, None]
+        dt = dts.sum(0) / total_counts
+    return NoiseEstimate(sigma, err, speed2, bend, dt, msd, total_counts.astype(np.int64))
+
+
+def _fit(sums: np.ndarray, counts: np.ndarray, dts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    use = counts > 0
+    if use.sum() < 2:
+        return None
+    msd = sums[use] / counts[use, None]
+    dt = dts[use] / counts[use]
+    w = np.sqrt(counts[use])
+    terms = [np.ones_like(dt), dt ** 2] + ([dt ** 4] if use.sum() >= 4 else [])
+    design = np.stack(terms, axis=1)
+    coef, *_ = np.linalg.lstsq(design * w[:, None], msd * w[:, None], rcond=None)
+    intercept, speed2 = coef[0], coef[1]
+    bend = coef[2] / np.where(speed2 != 0, speed2, np.nan) if len(terms) == 3 else np.zeros(3)
+    sigma = np.sqrt(np.maximum(intercept, 0.0) / 2)
+    return sigma, speed2, np.nan_to_num(bend)
+
+
+@dataclass(frozen=True)
+class ShotTemperature:
+    """One shot's velocities about the cluster's rigid motion.
+
+    Attributes
+    ----------
+    count : int
+        Particles with a velocity.
+    drift_mm_s : ndarray of shape (3,)
+        The cluster's mean velocity (its centre's).
+    omega_rad_s : ndarray of shape (3,)
+        The cluster's rotation (rotation vector per second).
+    rms_mm_s, rms_err_mm_s : ndarray of shape (3,)
+        RMS velocity per axis about the rigid motion, noise taken out.
+    temperature_ev, temperature_err_ev : ndarray of shape (3,)
+        Kinetic temperature per axis.
+    """
+
+    count: int
+    drift_mm_s: np.ndarray
+    omega_rad_s: np.ndarray
+    rms_mm_s: np.ndarray
+    rms_err_mm_s: np.ndarray
+    temperature_ev: np.ndarray
+    temperature_err_ev: np.ndarray
+
+
+def shot_temperature(xyz: np.ndarray, velocity: np.ndarray, dt_s: np.ndarray, noise: NoiseEstimate, *,
+                     mass_kg: float) -> ShotTemperature:
+    """Kinetic temperature of one shot (see the module docstring).
+
+    Parameters
+    ----------
+    xyz, velocity : ndarray of shape (n, 3)
+        Positions (mm) and velocities (mm/s); rows with a NaN velocity component are left out.
+    dt_s : ndarray of shape (n,)
+        The time apart of the two positions each velocity was taken from.
+    noise : NoiseEstimate
+    mass_kg : float
+    """
+    ok = np.all(np.isfinite(velocity), axis=1) & np.all(np.isfinite(xyz), axis=1) & (dt_s > 0)
+    n = int(ok.sum())
+    nan = np.full(3, np.nan)
+    if n < 8:
+        return ShotTemperature(n, nan, nan.copy(), nan.copy(), nan.copy(), nan.copy(), nan.copy())
+    r, v, dt = xyz[ok], velocity[ok], dt_s[ok]
+    centre = r.mean(axis=0)
+    rel = r - centre
+    # v = u + omega x rel: linear least squares for u (3) and omega (3).
+    design = np.zeros((3 * n, 6))
+    for a in range(3):
+        design[a::3, a] = 1.0
+    design[0::3, 4], design[0::3, 5] = rel[:, 2], -rel[:, 1]
+    design[1::3, 3], design[1::3, 5] = -rel[:, 2], rel[:, 0]
+    design[2::3, 3], design[2::3, 4] = rel[:, 1], -rel[:, 0]
+    coef, *_ = np.linalg.lstsq(design, v.reshape(-1), rcond=None)
+    residual = (v.reshape(-1) - design @ coef).reshape(n, 3)
+    var = np.mean(residual ** 2, axis=0) * (3 * n / (3 * n - 6))
+    sigma = np.nan_to_num(noise.sigma_mm)
+    noise_var = np.mean(2 * sigma[None, :] ** 2 / dt[:, None] ** 2, axis=0)
+    bend = 1.0 + noise.bend_s2 * float(np.mean(dt ** 2))
+    true_var = (var - noise_var) / np.where(bend > 0.2, bend, 1.0)
+    sigma_err = np.nan_to_num(noise.sigma_err_mm)
+    var_err = np.sqrt((var * np.sqrt(2.0 / max(n - 6, 1))) ** 2
+                      + (np.mean(4 * sigma[None, :] * sigma_err[None, :] / dt[:, None] ** 2, axis=0)) ** 2)
+    factor = ev_per_mm2_s2(mass_kg)
+    rms = np.sqrt(np.maximum(true_var, 0.0))
+    # d(sqrt(v)) = dv / (2 sqrt(v)), but no larger than sqrt(dv) where v is near zero.
+    rms_err = np.minimum(var_err / (2 * np.maximum(rms, 1e-12)), np.sqrt(var_err))
+    return ShotTemperature(n, coef[:3], coef[3:], rms, rms_err, factor * true_var, factor * var_err)
