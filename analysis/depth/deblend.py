@@ -32,6 +32,11 @@ SPLIT_HOST_LIGHT = 0.85
 #: ... and then fits its pixels much better (misfit down to this fraction); the partner must pass
 #: as a probe would (PROBE_FRACTION of the host's light, misfit <= PROBE_RESIDUAL).
 SPLIT_HOST_MISFIT = 0.6
+#: A fit within this many lens pitches (lens plane) of a brighter one sits on its line of sight:
+#: the light a slightly wrong model leaves of the brighter particle shows there as a fainter one
+#: at another depth. Such a partner must pass as a probe would (PROBE_FRACTION of the brighter
+#: one's light, misfit <= PROBE_RESIDUAL), whichever stage found it.
+LINE_OF_SIGHT_PITCHES = 1.0
 
 
 def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit]:
@@ -53,7 +58,7 @@ def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit
         keep = np.flatnonzero(~twice)
         peaks, fit = peaks.take(keep), fit.take(keep)
     new = fitter.fit(fit.sx_m, fit.sy_m, fit.alpha, subtract=explained, own=fit)
-    ok = fitter.acceptable(new)
+    ok = fitter.acceptable(new) & ~weak_partners(fitter, new)
     if not ok.all():
         # The dropped fits' light was taken off their neighbours' pixels too: refit those without it.
         near = ok & _overlapping(fitter.table, fit, np.flatnonzero(~ok), pad_pitches=2.0)
@@ -67,6 +72,22 @@ def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit
                                own=fit.take(near))
             new = replace_fits(fitter.grid, peaks, new, np.flatnonzero(near), again)[1]
     return accept(fitter, peaks, new)
+
+
+def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
+    """Fits (a mask) on a brighter fit's line of sight (within :data:`LINE_OF_SIGHT_PITCHES`) with
+    less evidence of their own than a probe needs: under :data:`PROBE_FRACTION` of its light, or
+    misfitting beyond :data:`PROBE_RESIDUAL`."""
+    weak = np.zeros(len(fit), dtype=bool)
+    if len(fit) < 2:
+        return weak
+    xy = np.column_stack([fit.sx_m, fit.sy_m])
+    pairs = cKDTree(xy).query_pairs(LINE_OF_SIGHT_PITCHES * fitter.pitch_m, output_type="ndarray")
+    for a, b in pairs:
+        faint, bright = (a, b) if fit.intensity[a] < fit.intensity[b] else (b, a)
+        weak[faint] |= ((fit.intensity[faint] < PROBE_FRACTION * fit.intensity[bright])
+                        | (fit.residual[faint] > PROBE_RESIDUAL))
+    return weak
 
 
 #: The screen's refit (:func:`seen_twice`): after the full coarse pass, 5 depths and +-0.15 pitch,
