@@ -8,6 +8,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from analysis.camera.lattice_kernels import nearest_lens
+
 # fastmath without nnan/ninf (style guide): NaN marks pixels and lenses without a value.
 _FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
@@ -80,24 +82,7 @@ def predict_from_neighbours(image: np.ndarray, origin_x: float, origin_y: float,
         dy0 = r + 0.5 - origin_y
         for c in range(w):
             dx0 = c + 0.5 - origin_x
-            fi = inverse[0, 0] * dx0 + inverse[0, 1] * dy0
-            fj = inverse[1, 0] * dx0 + inverse[1, 1] * dy0
-            fi0 = math.floor(fi)
-            fj0 = math.floor(fj)
-            best = np.inf
-            bi = 0
-            bj = 0
-            for di in range(2):
-                for dj in range(2):
-                    ii = fi0 + di
-                    jj = fj0 + dj
-                    ex = dx0 - (basis[0, 0] * ii + basis[0, 1] * jj)
-                    ey = dy0 - (basis[1, 0] * ii + basis[1, 1] * jj)
-                    d = ex * ex + ey * ey
-                    if d < best:
-                        best = d
-                        bi = int(ii)
-                        bj = int(jj)
+            bi, bj, _, _, _ = nearest_lens(dx0, dy0, basis, inverse)
             own = np.nan
             if 0 <= bi - i0 < na and 0 <= bj - j0 < nb:
                 own = levels[bj - j0, bi - i0]

@@ -8,6 +8,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from analysis.camera.lattice_kernels import nearest_lens
+
 # fastmath without nnan/ninf (style guide): NaN marks pixels left out.
 _FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
@@ -27,28 +29,7 @@ def cell_sums(image: np.ndarray, origin_x: float, origin_y: float, basis: np.nda
         y = r + 0.5 - origin_y
         for c in range(w):
             x = c + 0.5 - origin_x
-            fi = inverse[0, 0] * x + inverse[0, 1] * y
-            fj = inverse[1, 0] * x + inverse[1, 1] * y
-            fi0 = math.floor(fi)
-            fj0 = math.floor(fj)
-            best = np.inf
-            bi = 0
-            bj = 0
-            bx = 0.0
-            by = 0.0
-            for di in range(2):
-                for dj in range(2):
-                    ii = fi0 + di
-                    jj = fj0 + dj
-                    dx = x - (basis[0, 0] * ii + basis[0, 1] * jj)
-                    dy = y - (basis[1, 0] * ii + basis[1, 1] * jj)
-                    d = dx * dx + dy * dy
-                    if d < best:
-                        best = d
-                        bi = int(ii)
-                        bj = int(jj)
-                        bx = dx
-                        by = dy
+            bi, bj, bx, by, best = nearest_lens(x, y, basis, inverse)
             a = bi - i0
             b = bj - j0
             if a < 0 or b < 0 or a >= na or b >= nb:

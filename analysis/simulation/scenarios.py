@@ -29,7 +29,7 @@ about the median (another stream), leaving positions as they are.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -79,14 +79,6 @@ class Scenario:
     particles: Particles
     background_dn: float
     parameters: dict[str, Any] = field(default_factory=dict)
-
-    def jittered(self, rng: np.random.Generator, *, sigma_mm: float = 0.02) -> "Scenario":
-        """The same cluster a moment later: each particle moved by a Gaussian step (thermal motion)."""
-        p = self.particles
-        n = len(p)
-        step = rng.normal(0.0, sigma_mm, size=(3, n))
-        moved = Particles(p.x_mm + step[0], p.y_mm + step[1], p.z_mm + step[2], p.brightness_dn.copy())
-        return replace(self, particles=moved)
 
 
 def make_scenario(name: str, seed: int, *, centre_z_mm: float | None = None, brightness_dn: float = 1800.0,
