@@ -5,7 +5,9 @@ where the pipeline saw them (``sx, sy, alpha``) and where they were (row and col
 and the stage position). :func:`fit_target_mapping` fits both mappings of
 :mod:`analysis.camera.target_mapping` to them, holds back each inner stage position in turn
 (predicting it from the others, as the calibration will be used between positions), keeps the
-mapping whose held-back predictions were best, and fits it again to every position.
+mapping whose held-back predictions were best, and fits it again to every position. Each dot is
+weighted by its position's scatter and by the error all dots of that position share
+(:func:`with_shared_error`).
 """
 
 from __future__ import annotations
@@ -32,6 +34,9 @@ MIN_POSITIONS = 3
 OUTLIER_SIGMAS = 6.0
 #: Noise estimates are at least this fraction of the median over positions (no position dominates).
 NOISE_FLOOR = 0.25
+#: Rounds of fitting a mapping and widening each stage position's noise by the error its dots share
+#: (:func:`with_shared_error`).
+SHARED_ERROR_ROUNDS = 3
 #: Starting points of the physical fit: auxiliary lens powers (1/mm) and distances (fractions of
 #: the target's distance).
 _POWER_STARTS = (0.0, 1 / 600, 1 / 300, 1 / 175, 1 / 120, -1 / 300)
@@ -252,6 +257,49 @@ def noise_per_position(obs: TargetObservations, *, floor: float = NOISE_FLOOR) -
     return dataclasses.replace(obs, sigma_mm=sigma[obs.position])
 
 
+def with_shared_error(obs: TargetObservations, mapping: Mapping3D) -> TargetObservations:
+    """The observations with each coordinate's noise widened by the error its dots share with the
+    others of their stage position: ``sqrt(sigma^2 + n tau^2)``, where ``sigma`` is ``obs``'s noise
+    (:func:`noise_per_position`), ``n`` the position's dots and ``tau`` their mean misfit to
+    ``mapping`` beyond what ``sigma`` explains.
+
+    The depth fit's errors depend on how far out of focus a dot is, so all dots of a stage position
+    share one: strongly blurred dots are measured nearer focus, by about 1.5e-4 in alpha (20-30 um)
+    15 lens pitches out. Such a position tells the mapping one thing, however many dots it has;
+    weighting its dots as independent lets it bend the mapping at the positions that agree.
+    """
+    if obs.sigma_mm is None:
+        obs = noise_per_position(obs)
+    err = predict(mapping, obs) - obs.world_mm
+    sigma = obs.sigma_mm.copy()
+    for k in np.unique(obs.position):
+        sel = obs.position == k
+        n = int(sel.sum())
+        noise2 = np.mean(obs.sigma_mm[sel] ** 2, axis=0)
+        shared2 = np.maximum(np.nanmean(err[sel], axis=0) ** 2 - noise2 / n, 0.0)
+        sigma[sel] = np.sqrt(obs.sigma_mm[sel] ** 2 + n * shared2)
+    return dataclasses.replace(obs, sigma_mm=sigma)
+
+
+def _fit_kind(obs: TargetObservations, kind: str, lens: MainLens | None, front_guess: FrontOptics | None,
+              start: Mapping3D | None = None) -> Mapping3D:
+    if kind == "polynomial":
+        return fit_polynomial(obs)
+    return fit_physical(obs, lens, start=start, front_guess=front_guess)  # type: ignore[arg-type]
+
+
+def _fit_weighted(obs: TargetObservations, kind: str, lens: MainLens | None,
+                  front_guess: FrontOptics | None) -> tuple[Mapping3D, TargetObservations]:
+    """A mapping of ``kind`` fitted with each position's shared error in its weights
+    (:data:`SHARED_ERROR_ROUNDS` rounds), and the observations with those weights."""
+    mapping = _fit_kind(obs, kind, lens, front_guess)
+    weighted = obs
+    for _ in range(SHARED_ERROR_ROUNDS):
+        weighted = with_shared_error(obs, mapping)
+        mapping = _fit_kind(weighted, kind, lens, front_guess, start=mapping)
+    return mapping, weighted
+
+
 def fit_target_mapping(obs: TargetObservations, lens: MainLens | None, *, front_guess: FrontOptics | None = None
                        ) -> tuple[Mapping3D, dict[str, Mapping3D], dict]:
     """Fit both mappings, compare them on held-back positions, keep the better.
@@ -283,16 +331,16 @@ def fit_target_mapping(obs: TargetObservations, lens: MainLens | None, *, front_
     obs, outliers = drop_outliers(obs)
     obs = noise_per_position(obs)
     order = positions[np.argsort(obs.positions_mm[positions])]
-    fitted: dict[str, Mapping3D] = {"polynomial": fit_polynomial(obs)}
-    if lens is not None:
-        fitted["physical"] = fit_physical(obs, lens, front_guess=front_guess)
+    fitted: dict[str, Mapping3D] = {}
+    weighted: dict[str, TargetObservations] = {}
+    for kind in ("polynomial",) if lens is None else ("polynomial", "physical"):
+        fitted[kind], weighted[kind] = _fit_weighted(obs, kind, lens, front_guess)
     comparison: dict[str, dict] = {}
     for kind, full in fitted.items():
         errors, per_position = [], []
         for k in order[1:-1]:
-            train, test = obs.take(obs.position != k), obs.take(obs.position == k)
-            mapping = (fit_polynomial(train) if isinstance(full, PolynomialMapping)
-                       else fit_physical(train, lens, start=full))  # type: ignore[arg-type]
+            train, test = weighted[kind].take(obs.position != k), obs.take(obs.position == k)
+            mapping = _fit_kind(train, kind, lens, front_guess, start=full)
             err = (predict(mapping, test) - test.world_mm) * 1e3
             errors.append(err)
             per_position.append({"position_mm": float(obs.positions_mm[k]), "dots": int(len(test)),
