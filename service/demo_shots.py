@@ -131,12 +131,16 @@ class DemoShots:
     def start(self, every_s: float) -> None:
         """Shoot every ``every_s`` seconds, on a fixed clock, in a background thread until :meth:`stop`.
 
-        The k-th shot is due ``k * every_s`` after the start and its metadata records that time;
+        The k-th shot is due ``k * every_s`` after the start (the last shot taken, if any: the first
+        shot :meth:`prepare` took) and its metadata records that time;
         rendering happens in between. If rendering takes longer than ``every_s``, due times are
         skipped (and said so once) rather than shots piling up.
         """
         def loop() -> None:
-            start_mono, start_wall = time.monotonic(), datetime.now(timezone.utc)
+            # The clock starts at the shot taken last (prepare()'s first one), so that one is on it too.
+            now = datetime.now(timezone.utc)
+            start_wall = self._last_shot if self._last_shot is not None and self._last_shot <= now else now
+            start_mono = time.monotonic() - (now - start_wall).total_seconds()
             k, warned = 1, False
             while not self._stop.wait(max(0.0, start_mono + k * every_s - time.monotonic())):
                 try:
