@@ -1,13 +1,16 @@
 """A simulated experiment for ``plenodust demo``: a camera folder that gets a new shot every few seconds.
 
-The first shot and the white images come from :func:`analysis.simulation.scenario_files.write_scenario`;
-each later shot is the same cluster as much later as the clock says, moved physically
-(:class:`analysis.simulation.dynamics.MovingCluster`: Langevin motion in cages, rotation, drift,
-shell hops; so the dashboard's trails and temperatures have something real to show), rendered
+The white images come from :func:`analysis.simulation.scenario_files.write_scenario`; every shot,
+the first included, is the same cluster as much later as the clock says, moved physically
+(:class:`analysis.simulation.dynamics.MovingCluster`: Langevin motion in cages, rotation, shell
+hops; so the dashboard's trails and temperatures have something real to show), rendered
 by the simulator's forward model and added to the simulated camera's file system as the
 camera would store it (``IMG_nnnn.RAW`` + ``.TXT``). Shots are taken on a fixed clock (the
 k-th at ``k * every_s`` after the start, its metadata saying so), whatever rendering takes,
-and the card keeps the newest ``keep`` of them. :meth:`DemoShots.shutter` takes one at once
+and the card keeps the newest ``keep`` of them. The motion is :class:`Motion`'s played
+``every_s / interval_s`` times slower (:meth:`Motion.slowed`), so a shot every few seconds sees
+the steps a shot a second would (about 0.15 of the mean nearest-neighbour distance, which the
+linker follows), and without drift, so the cluster stays in view however long the demo runs. :meth:`DemoShots.shutter` takes one at once
 (the simulated camera's take-picture command).
 """
 
@@ -48,10 +51,12 @@ class DemoShots:
     seed : int
     keep : int
         Pictures kept on the simulated card; older ones are deleted as new ones come.
+    every_s : float
+        The time between shots the motion is scaled to (also for shots on request).
     """
 
     def __init__(self, camera_dir: Path, *, scenario: str = "ball", size: int = 1024, seed: int = 1,
-                 keep: int = 200) -> None:
+                 keep: int = 200, every_s: float = 4.0) -> None:
         self.camera_dir = Path(camera_dir)
         self.scenario_name = scenario
         self.size = size
@@ -60,7 +65,9 @@ class DemoShots:
         self.model = CameraModel.from_metadata(self.metadata)
         self.private = simulated_private_metadata(DEFAULT_SERIAL)
         self.scenario = make_scenario(scenario, seed)
-        self.cluster = MovingCluster(self.scenario, Motion(), seed=[seed, 0x40710])
+        base = Motion(drift_mm_per_s=(0.0, 0.0, 0.0))
+        self.motion = base.slowed((every_s if every_s > 0 else 4.0) / base.interval_s)
+        self.cluster = MovingCluster(self.scenario, self.motion, seed=[seed, 0x40710])
         self._last_shot: datetime | None = None
         self.keep = keep
         self.shots = 0
@@ -70,16 +77,20 @@ class DemoShots:
         self._shooting = threading.Lock()  # the clock and the shutter may both shoot
 
     def prepare(self) -> None:
-        """White images and the first shot, through the simulator's own writer."""
+        """White images (through the simulator's own writer) and the first shot, taken now.
+
+        The first shot goes through :meth:`shoot` like every later one, so its metadata's clock
+        is today's too (the writer's exposure carries a fixed date years back, and a run's ``t``
+        would jump by those years between its first and second shot).
+        """
         staging = self.camera_dir.parent / ".demo-staging"
         if staging.exists():
             shutil.rmtree(staging)
         files = write_scenario(staging, self.scenario_name, self.seed, count=1, size=self.size)
         self.camera_dir.mkdir(parents=True, exist_ok=True)
         shutil.copytree(files.calibration_dir, self.camera_dir / "calibration", dirs_exist_ok=True)
-        CameraFolder(self.camera_dir).add_picture(files.raw[0].read_bytes(), files.txt[0].read_bytes())
         shutil.rmtree(staging)
-        self.shots = 1
+        self.shoot()
 
     def shutter(self, folder: CameraFolder | None = None) -> str:
         """Take a shot now (the simulated camera calls this on its take-picture command)."""
@@ -95,10 +106,12 @@ class DemoShots:
 
     def _shoot(self, taken_at: datetime) -> str:
         rng = np.random.default_rng([self.seed, self.shots + 1])
-        # The cluster moves on by the time since the last shot (a second per step, at most a minute).
-        seconds = 1.0 if self._last_shot is None else (taken_at - self._last_shot).total_seconds()
-        for _ in range(int(min(60, max(1, round(seconds))))):
-            self.cluster.advance()
+        # The first shot is the scenario itself; later ones move on by the time since the last
+        # (one motion interval per step, at least one, at most 60).
+        if self._last_shot is not None:
+            steps = (taken_at - self._last_shot).total_seconds() / self.motion.interval_s
+            for _ in range(int(min(60, max(1, round(steps))))):
+                self.cluster.advance()
         self._last_shot = taken_at
         self.scenario = moved_scenario(self.scenario, self.cluster.snapshot())
         particles = self.scenario.particles
@@ -118,12 +131,16 @@ class DemoShots:
     def start(self, every_s: float) -> None:
         """Shoot every ``every_s`` seconds, on a fixed clock, in a background thread until :meth:`stop`.
 
-        The k-th shot is due ``k * every_s`` after the start and its metadata records that time;
+        The k-th shot is due ``k * every_s`` after the start (the last shot taken, if any: the first
+        shot :meth:`prepare` took) and its metadata records that time;
         rendering happens in between. If rendering takes longer than ``every_s``, due times are
         skipped (and said so once) rather than shots piling up.
         """
         def loop() -> None:
-            start_mono, start_wall = time.monotonic(), datetime.now(timezone.utc)
+            # The clock starts at the shot taken last (prepare()'s first one), so that one is on it too.
+            now = datetime.now(timezone.utc)
+            start_wall = self._last_shot if self._last_shot is not None and self._last_shot <= now else now
+            start_mono = time.monotonic() - (now - start_wall).total_seconds()
             k, warned = 1, False
             while not self._stop.wait(max(0.0, start_mono + k * every_s - time.monotonic())):
                 try:

@@ -55,19 +55,29 @@ class ServiceProcess:
         return f"http://127.0.0.1:{self._port}"
 
     def wait_ready(self, timeout_s: float = 120.0) -> ServiceProcess:
+        """Wait for ``/readyz`` to answer 200. A service that does not get there is stopped (a
+        failed test must not leave a server and its workers running) and the error says what
+        ``/readyz`` last answered (workers warming, data disk full, ...)."""
         deadline = time.monotonic() + timeout_s
-        if not self._found.wait(timeout_s):
-            raise TimeoutError("service did not start:\n" + "".join(self.lines[-30:]))
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise RuntimeError("service exited:\n" + "".join(self.lines[-30:]))
-            try:
-                if httpx.get(self.url + "/readyz", timeout=5).status_code == 200:
-                    return self
-            except httpx.TransportError:
-                pass
-            time.sleep(0.2)
-        raise TimeoutError("service never became ready:\n" + "".join(self.lines[-30:]))
+        last = ""
+        try:
+            if not self._found.wait(timeout_s):
+                raise TimeoutError("service did not start:\n" + "".join(self.lines[-30:]))
+            while time.monotonic() < deadline:
+                if self.proc.poll() is not None:
+                    raise RuntimeError("service exited:\n" + "".join(self.lines[-30:]))
+                try:
+                    r = httpx.get(self.url + "/readyz", timeout=5)
+                    if r.status_code == 200:
+                        return self
+                    last = r.text
+                except httpx.TransportError:
+                    pass
+                time.sleep(0.2)
+            raise TimeoutError(f"service never became ready: /readyz said {last}\n" + "".join(self.lines[-30:]))
+        except BaseException:
+            self.stop()
+            raise
 
     def kill(self, *, group: bool = False) -> None:
         """SIGKILL the server process (``group``: and its workers at once, as a power cut would)."""

@@ -488,3 +488,17 @@ def test_cluster_placed_off_focus_lights_no_single_lens(tmp_path):
     assert np.all(truth["blur_pitches"] > 1.0)
     lattice = read_exposure(tmp_path / "IMG_0001.lfp").model.lattice
     assert not single_lens(truth, lattice).any()
+
+
+def test_the_motion_turns_with_spin_and_the_plate_with_rotation() -> None:
+    # The merge of the target plate's --rotation and the motion's turn: both reach their own setting.
+    from analysis.simulation.dynamics import Motion
+    from service.cli.main import build_parser
+    from service.cli.simulate import motion_from_args, optics_from_args
+
+    args = build_parser("simulate").parse_args(
+        ["simulate", "--out", "x", "--scenario", "target", "--spin", "5", "--rotation", "10", "--positions", "60"])
+    assert motion_from_args(args).rotation_deg_per_s == 5.0
+    assert optics_from_args(args)[1].rotation_deg == 10.0
+    assert motion_from_args(build_parser("simulate").parse_args(["simulate", "--out", "x"])).rotation_deg_per_s \
+        == Motion().rotation_deg_per_s

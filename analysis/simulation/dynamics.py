@@ -25,7 +25,7 @@ displacement, about 0.16 mm at the defaults, a quarter of the ball's mean NN dis
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -78,6 +78,25 @@ class Motion:
     def thermal_speed_mm_s(self) -> float:
         """Standard deviation of one velocity component, mm/s."""
         return thermal_speed_mm_s(self.temperature_ev, self.mass_kg)
+
+    def slowed(self, factor: float) -> Motion:
+        """The same motion played ``factor`` times slower: one shot every ``factor * interval_s``
+        with the same displacements per shot (rates divided by ``factor``, the temperature by
+        ``factor ** 2``, hops lasting ``factor`` times longer), so a camera shooting less often
+        still sees steps it can link, and every velocity stays consistent with the clock.
+
+        >>> m = Motion().slowed(4.0)
+        >>> (m.interval_s, round(m.temperature_ev, 6), m.rotation_deg_per_s)
+        (4.0, 0.00025, 0.625)
+        """
+        if not factor > 0:
+            raise ParameterError(f"factor={factor} must be positive")
+        f = float(factor)
+        return replace(self, interval_s=self.interval_s * f, temperature_ev=self.temperature_ev / f ** 2,
+                       damping_per_s=self.damping_per_s / f, cage_per_s=self.cage_per_s / f,
+                       rotation_deg_per_s=self.rotation_deg_per_s / f,
+                       drift_mm_per_s=tuple(v / f for v in self.drift_mm_per_s),
+                       hop_rate_per_s=self.hop_rate_per_s / f, hop_duration_s=self.hop_duration_s * f)
 
     def to_dict(self) -> dict[str, Any]:
         out = asdict(self)

@@ -7,7 +7,12 @@ Each shot's found particles are paired with the true ones (:func:`analysis.simul
   paired with the same true particle (``links_right``: the fraction of links whose two ends are
   both paired that are right);
 - a **missed shot** is a true particle paired in frames ``k - 1`` and ``k + 1`` but not in ``k``; it is
-  bridged when the found ids on both sides are the same (``gaps_bridged``);
+  bridged when the found ids on both sides are the same (``gaps_bridged``). Of those not bridged,
+  ``gaps_misplaced`` are ones where the trajectory of ``k - 1`` goes on in frame ``k`` with a row the
+  scorer paired with no true particle (the particle was found, but more than ``max_distance`` off),
+  and ``gaps_taken_by_spurious`` ones where the trajectory that has the particle after the gap
+  followed, before it, rows paired with no true particle (a spurious detection near the particle,
+  which it takes over): a detection's failing, not the linker's memory;
 - **fragments**: found trajectories per true particle (1 is perfect);
 - velocities: RMS of found minus true per axis (``velocity_rms_error_mm_s``);
 - the run's truth temperature: the true velocities' variance about the cluster's rigid motion,
@@ -104,12 +109,19 @@ def score_tracks(linked: pd.DataFrame, truth: pd.DataFrame, *, max_distance: flo
     judged = link & (tid[1:] >= 0) & (tid[:-1] >= 0)
     right = judged & (tid[1:] == tid[:-1])
     frames = sorted(paired_per_frame)
-    gaps = bridged = 0
+    gaps = bridged = misplaced = spurious = 0
+    unpaired_ids = {int(f): set(linked["particle"].to_numpy()[rows][truth_id[rows] < 0].tolist())
+                    for f, rows in found_groups.items()}
     for k in frames[1:-1]:
         before, now, after = paired_per_frame.get(k - 1, {}), paired_per_frame[k], paired_per_frame.get(k + 1, {})
         for true in set(before) & set(after) - set(now):
             gaps += 1
-            bridged += int(before[true] == after[true])
+            if before[true] == after[true]:
+                bridged += 1
+            elif before[true] in unpaired_ids.get(k, set()):
+                misplaced += 1
+            elif any(after[true] in unpaired_ids.get(j, set()) for j in frames if j <= k):
+                spurious += 1
     fragments = []
     for true in np.unique(truth_id[truth_id >= 0]):
         fragments.append(np.unique(particle[(truth_id == true) & (particle >= 0)]).size)
@@ -123,7 +135,8 @@ def score_tracks(linked: pd.DataFrame, truth: pd.DataFrame, *, max_distance: flo
         "links_right": float(right.sum() / judged.sum()) if judged.sum() else math.nan,
         "links_wrong": int(judged.sum() - right.sum()),
         "consecutive_truth_links": int(possible),
-        "gaps": gaps, "gaps_bridged": bridged,
+        "gaps": gaps, "gaps_bridged": bridged, "gaps_misplaced": misplaced,
+        "gaps_taken_by_spurious": spurious,
         "fragments_per_particle": float(np.mean(fragments)) if fragments else math.nan,
         "detections_paired": float(np.mean(truth_id >= 0)) if len(truth_id) else math.nan,
         "velocity_rms_error_mm_s": [_rms(err[:, a]) for a in range(3)],
@@ -135,3 +148,4 @@ def _rms(values: np.ndarray) -> float:
     """RMS of the finite values (NaN where there are none)."""
     finite = values[np.isfinite(values)]
     return float(np.sqrt(np.mean(finite ** 2))) if finite.size else math.nan
+

@@ -16,12 +16,22 @@ axis from the run itself:
    particles' velocities about the cluster's rigid motion, less ``2 sigma^2 / dt^2``, divided by
    ``1 + (c / <v^2>) dt^2`` (the bend's share at the velocities' own ``dt``), times ``m / e``.
 
+Both mean squares are taken robustly: values beyond ``CLIP_SIGMA`` (4) robust standard deviations
+(1.4826 times the median absolute value) are left out, the rigid motion fitted again without
+them, and the mean square of the rest divided by what the cut takes from a Gaussian (0.1 % at
+4). Velocities and displacements are Gaussian (Maxwellian motion plus Gaussian position errors),
+so nothing changes for them; a wrong link or a detection far off is not Gaussian, and one in two
+hundred of them, each a step of half a neighbour distance, would otherwise add a third to the
+temperature (and, since a wrong link enters more displacements the longer the lag, bend the
+noise fit's intercept negative).
+
 Uncertainties come from a jackknife over blocks of frames (noise) and the sampling error of a
 variance of ``n`` values (a shot).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,6 +41,25 @@ from .motion import kabsch
 from .units import ev_per_mm2_s2
 
 AXES = ("X", "Y", "Z")
+CLIP_SIGMA = 4.0  # robust standard deviations beyond which a velocity or displacement is left out
+
+
+def gaussian_kept_fraction(k: float) -> float:
+    """The mean square of a standard Gaussian within ``+-k``, over its full mean square (1).
+
+    >>> round(gaussian_kept_fraction(4.0), 5)
+    0.99893
+    """
+    inside = math.erf(k / math.sqrt(2.0))
+    density = math.exp(-0.5 * k * k) / math.sqrt(2.0 * math.pi)
+    return 1.0 - 2.0 * k * density / inside
+
+
+def inliers(residual: np.ndarray, clip: float = CLIP_SIGMA) -> np.ndarray:
+    """Rows of ``residual`` (n, 3), about zero, whose every component lies within ``clip``
+    robust standard deviations (1.4826 times that axis's median absolute value)."""
+    scale = 1.4826 * np.median(np.abs(residual), axis=0)
+    return np.all(np.abs(residual) <= clip * np.where(scale > 0, scale, np.inf), axis=1)
 
 
 @dataclass(frozen=True)
@@ -136,11 +165,15 @@ def position_noise(particle: np.ndarray, frame: np.ndarray, t: np.ndarray, xyz: 
             both = np.all(np.isfinite(positions[k]), axis=1) & np.all(np.isfinite(positions[j]), axis=1)
             if both.sum() < 8:
                 continue
-            res = rigid_residuals(positions[k][both], positions[j][both])
+            a_xyz, b_xyz = positions[k][both], positions[j][both]
+            keep = inliers(rigid_residuals(a_xyz, b_xyz))
+            if keep.sum() < 8:
+                continue
+            res = rigid_residuals(a_xyz[keep], b_xyz[keep])
             b = block_of[k]
-            sums[b, lag - 1] += np.sum(res ** 2, axis=0)
-            counts[b, lag - 1] += both.sum()
-            dts[b, lag - 1] += both.sum() * (times[j] - times[k])
+            sums[b, lag - 1] += np.sum(res ** 2, axis=0) / gaussian_kept_fraction(CLIP_SIGMA)
+            counts[b, lag - 1] += keep.sum()
+            dts[b, lag - 1] += keep.sum() * (times[j] - times[k])
     estimate = _fit(sums.sum(0), counts.sum(0), dts.sum(0))
     if estimate is None:
         return NoiseEstimate.unknown()
@@ -184,7 +217,7 @@ class ShotTemperature:
     Attributes
     ----------
     count : int
-        Particles with a velocity.
+        Particles whose velocity was used (with a velocity, and not left out as an outlier).
     drift_mm_s : ndarray of shape (3,)
         The cluster's mean velocity (its centre's).
     omega_rad_s : ndarray of shape (3,)
@@ -223,18 +256,13 @@ def shot_temperature(xyz: np.ndarray, velocity: np.ndarray, dt_s: np.ndarray, no
     if n < 8:
         return ShotTemperature(n, nan, nan.copy(), nan.copy(), nan.copy(), nan.copy(), nan.copy())
     r, v, dt = xyz[ok], velocity[ok], dt_s[ok]
-    centre = r.mean(axis=0)
-    rel = r - centre
-    # v = u + omega x rel: linear least squares for u (3) and omega (3).
-    design = np.zeros((3 * n, 6))
-    for a in range(3):
-        design[a::3, a] = 1.0
-    design[0::3, 4], design[0::3, 5] = rel[:, 2], -rel[:, 1]
-    design[1::3, 3], design[1::3, 5] = -rel[:, 2], rel[:, 0]
-    design[2::3, 3], design[2::3, 4] = rel[:, 1], -rel[:, 0]
-    coef, *_ = np.linalg.lstsq(design, v.reshape(-1), rcond=None)
-    residual = (v.reshape(-1) - design @ coef).reshape(n, 3)
-    var = np.mean(residual ** 2, axis=0) * (3 * n / (3 * n - 6))
+    coef, residual = _rigid_fit(r, v)
+    keep = inliers(residual)  # wrong links and far-off detections out (module docstring)
+    if keep.sum() >= 8 and not keep.all():
+        r, v, dt = r[keep], v[keep], dt[keep]
+        n = int(keep.sum())
+        coef, residual = _rigid_fit(r, v)
+    var = np.mean(residual ** 2, axis=0) * (3 * n / (3 * n - 6)) / gaussian_kept_fraction(CLIP_SIGMA)
     sigma = np.nan_to_num(noise.sigma_mm)
     noise_var = np.mean(2 * sigma[None, :] ** 2 / dt[:, None] ** 2, axis=0)
     bend = 1.0 + noise.bend_s2 * float(np.mean(dt ** 2))
@@ -247,3 +275,17 @@ def shot_temperature(xyz: np.ndarray, velocity: np.ndarray, dt_s: np.ndarray, no
     # d(sqrt(v)) = dv / (2 sqrt(v)), but no larger than sqrt(dv) where v is near zero.
     rms_err = np.minimum(var_err / (2 * np.maximum(rms, 1e-12)), np.sqrt(var_err))
     return ShotTemperature(n, coef[:3], coef[3:], rms, rms_err, factor * true_var, factor * var_err)
+
+
+def _rigid_fit(r: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``v = u + omega x (r - centre)`` by linear least squares: ``(u, omega)`` and the residuals."""
+    n = len(r)
+    rel = r - r.mean(axis=0)
+    design = np.zeros((3 * n, 6))
+    for a in range(3):
+        design[a::3, a] = 1.0
+    design[0::3, 4], design[0::3, 5] = rel[:, 2], -rel[:, 1]
+    design[1::3, 3], design[1::3, 5] = -rel[:, 2], rel[:, 0]
+    design[2::3, 3], design[2::3, 4] = rel[:, 1], -rel[:, 0]
+    coef, *_ = np.linalg.lstsq(design, v.reshape(-1), rcond=None)
+    return coef, (v.reshape(-1) - design @ coef).reshape(n, 3)

@@ -63,7 +63,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"plenodust demo: data in {data}"
               + (" (removed on exit; --keep-data keeps it)" if temporary and not args.keep_data else "")
               + "; rendering the simulated camera's white images and first shot ...", flush=True)
-        shots = DemoShots(camera_dir, scenario=args.scenario, size=args.size, keep=args.keep)
+        shots = DemoShots(camera_dir, scenario=args.scenario, size=args.size, keep=args.keep,
+                          every_s=args.every)
         if not (camera_dir / "calibration").is_dir():
             shots.prepare()
         every = f"a shot every {args.every:g} s" if args.every else "shots on request only"

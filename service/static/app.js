@@ -355,22 +355,39 @@ function drawTimeline() {
   const data = [line(c.count, "particles", "#4fc3f7", "y"),
                 line(c.T_xy_eV, "T lateral (X, Y)", "#ffd54f", "y2", c.T_xy_err_eV),
                 line(c.T_eV, "T (X, Y, Z)", "#ff8a65", "y2", c.T_err_eV)];
+  // Shells are found shot by shot: "shell k" is the same shell only in shots with as many shells,
+  // so the occupations are drawn for the shots with the run's usual number of shells (gaps elsewhere).
   const shellColours = ["#81c784", "#ba68c8", "#4db6ac", "#f06292", "#aed581"];
-  for (let k = 0; c[`shell${k}_n`]; k++) {
-    data.push(line(c[`shell${k}_n`], `shell ${k + 1} (r ≈ ${median(c[`shell${k}_r_mm`]).toFixed(2)} mm)`,
-                   shellColours[k % shellColours.length], "y3", c[`shell${k}_n_err`]));
+  const usual = mode(c.shells || []);
+  const same = (c.shells || []).map(n => n === usual);
+  const only = v => v.map((x, i) => same[i] ? x : null);
+  for (let k = 0; k < usual && c[`shell${k}_n`]; k++) {
+    data.push(line(only(c[`shell${k}_n`]), `shell ${k + 1} (r ≈ ${median(only(c[`shell${k}_r_mm`])).toFixed(2)} mm)`,
+                   shellColours[k % shellColours.length], "y3", c[`shell${k}_n_err`] && only(c[`shell${k}_n_err`])));
   }
+  const shellNote = usual ? ` · ${usual} shells in ${same.filter(Boolean).length} of ${same.length} shots`
+    + (same.every(Boolean) ? "" : " (occupations drawn for those)") : "";
   const noise = ["X", "Y", "Z"].map(a => c[`noise_${a}_mm`] ? median(c[`noise_${a}_mm`]) : NaN);
   $("run-info").textContent = `run ${s.run} · ${s.count} linked shots · position noise X ${fmtUm(noise[0])}, `
-    + `Y ${fmtUm(noise[1])}, Z ${fmtUm(noise[2])} (taken out of the temperatures) · particle mass ${s.particle_mass_kg.toExponential(2)} kg`;
+    + `Y ${fmtUm(noise[1])}, Z ${fmtUm(noise[2])} (taken out of the temperatures) · particle mass ${s.particle_mass_kg.toExponential(2)} kg${shellNote}`;
   plot("timeline", data, {
-    ...DARK, margin: { l: 62, r: 12, t: 8, b: 40 }, showlegend: true, hovermode: "x unified",
+    // A top margin for the mode bar, which would otherwise cover the legend's first entry.
+    ...DARK, margin: { l: 62, r: 12, t: 30, b: 40 }, showlegend: true, hovermode: "x unified",
     legend: { x: 1.01, xanchor: "left", y: 1, bgcolor: "rgba(11,15,19,0.75)", font: { size: 10 } },
     xaxis: { ...AXIS, title: { text: "t (s since the run's first shot)" }, anchor: "y3" },
     yaxis: { ...AXIS, domain: [0.70, 1], title: { text: "particles" }, rangemode: "tozero" },
     yaxis2: { ...AXIS, domain: [0.36, 0.64], title: { text: "T (eV)" }, tickformat: ".4~f", rangemode: "tozero" },
     yaxis3: { ...AXIS, domain: [0, 0.30], title: { text: "per shell" }, rangemode: "tozero" },
   });
+}
+
+// The most frequent finite value (0 when there is none).
+function mode(values) {
+  const counts = new Map();
+  values.forEach(v => { if (v !== null && Number.isFinite(v)) counts.set(v, (counts.get(v) || 0) + 1); });
+  let best = 0, most = 0;
+  counts.forEach((n, v) => { if (n > most || (n === most && v > best)) { best = v; most = n; } });
+  return best;
 }
 
 function median(values) {
