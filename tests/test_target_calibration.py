@@ -1,6 +1,7 @@
 """A dot target through the paper's optics (f = 174 mm auxiliary lens, 1 % distortion), rendered by the
 simulator and calibrated from the command line: held-back positions to the issue's targets, a layer
-through the same optics measured in millimetres (its tilt to 0.3 degrees, its depth without bias),
+through the same optics measured in millimetres (its tilt to 0.3 degrees, as close to the truth as the
+simulator's own optics put the same measurements),
 and the errors a lab can run into, each with a message that says what to do.
 
 Crops of 2048 px keep it quick on two cores; bench/bench_target.py measures the full frame.
@@ -19,6 +20,7 @@ import pytest
 
 from analysis.calibration.metric_files import read_metric_calibration
 from analysis.camera.coordinates import validate_plane
+from analysis.camera.front_optics import FrontOptics
 from analysis.simulation.scoring import score
 from service.cli.main import main
 
@@ -97,10 +99,20 @@ def test_a_layer_through_the_same_optics_comes_out_in_millimetres(calibrated, tm
     assert validate_plane(found["X"], found["Y"], found["Z"]).tilt_deg == pytest.approx(true_tilt, abs=0.3)
     s = score(found, truth)
     assert s.recall >= 0.9
-    assert s.depth_abs_rms_over_nn <= 1.1 * s.depth_fit_rms_over_nn, s
+    # The calibration adds almost nothing to the error: the same measurements (x, y, alpha) mapped
+    # through the simulator's own optics (the thin lens, then the front optics undone) come out
+    # within 1.1x as far from the truth. (Compared with the depth precision of a linear fit instead,
+    # this crop also counts the depth fit's own small bias with defocus, which no mapping of alpha
+    # can see; the full-frame bench reports both.)
+    thin, _ = tables["thin"]
+    front = FrontOptics.from_dict(json.loads((layer / "scenario.json").read_text())["front_optics"])
+    exact = dict(zip("XYZ", front.physical(thin["X"], thin["Y"], thin["Z"])))
+    best = score(exact, truth)
+    assert best.recall == s.recall
+    assert s.depth_abs_rms_over_nn <= 1.1 * best.depth_abs_rms_over_nn, (s, best)
+    assert s.lateral_rms_over_nn <= 1.1 * best.lateral_rms_over_nn, (s, best)
     assert not [w for w in warnings if "outside the volume" in w], warnings
     # The metadata's thin lens knows nothing of the auxiliary lens: millimetres off, tilt off.
-    thin, _ = tables["thin"]
     assert abs(validate_plane(thin["X"], thin["Y"], thin["Z"]).tilt_deg - true_tilt) > 1.0
     assert score(thin, truth).n_matched == 0
 
