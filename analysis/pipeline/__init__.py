@@ -5,6 +5,8 @@
 - ``candidates``: detection, linking and peaks on the product stack.
 - ``stages``: timing and cost-weighted progress of the stages.
 - ``process``: :func:`~analysis.pipeline.process.process` and ``process_many``.
+- ``batch``: the exposure files a list of paths names, and each exposure's calibration from a
+  folder of white images (loaded once per camera and zoom/focus setting).
 - ``result``: :class:`~analysis.pipeline.result.Result`, the particle table with its provenance.
 - ``target``: a metric calibration from a dot target at known stage positions (its dots found with
   ``process``, its grid identified, a mapping fitted: :func:`~analysis.pipeline.target.calibrate_target`).

@@ -87,21 +87,15 @@ def positions_and_pitch(args: argparse.Namespace) -> tuple[list[float], float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from service.cli.process_cmd import expand_exposures
+    from service.cli.process_cmd import batch_inputs
 
     try:
         positions, pitch = positions_and_pitch(args)
     except (ValueError, KeyError, OSError) as exc:
         print(f"plenodust calibrate-target: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    files = expand_exposures(args.exposures)
-    if not files:
-        print("plenodust calibrate-target: no .lfp or .RAW exposure found in "
-              + ", ".join(str(p) for p in args.exposures), file=sys.stderr)
-        return EXIT_USAGE
-    if not args.calibration.exists():
-        print(f"plenodust calibrate-target: calibration {args.calibration} does not exist; give the folder of the "
-              "camera's MOD_nnnn.RAW/.TXT white images or a data.C.N bundle", file=sys.stderr)
+    files = batch_inputs("calibrate-target", args.exposures, args.calibration)
+    if files is None:
         return EXIT_USAGE
     if args.out.suffix.lower() != ".json":
         args.out.mkdir(parents=True, exist_ok=True)

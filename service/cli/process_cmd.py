@@ -128,37 +128,21 @@ def params_from_args(args: argparse.Namespace) -> Any:
         reference_alpha=args.reference_alpha, reference_z_mm=args.reference_z_mm)
 
 
-def expand_exposures(paths: list[Path]) -> list[Path]:
-    """Files to process: files as given, folders expanded to their ``.lfp``/``.RAW`` (sorted),
-    a ``.RAW`` dropped where an ``.lfp`` of the same name sits beside it."""
-    out: list[Path] = []
-    for path in paths:
-        if path.is_dir():
-            found = sorted(q for q in path.iterdir()
-                           if q.is_file() and q.suffix.lower() in (".lfp", ".raw") and not q.name.startswith("MOD_"))
-            lfp_stems = {q.stem.lower() for q in found if q.suffix.lower() == ".lfp"}
-            out.extend(q for q in found if q.suffix.lower() == ".lfp" or q.stem.lower() not in lfp_stems)
-        else:
-            out.append(path)
-    return out
+def batch_inputs(command: str, exposures: list[Path], calibration: Path) -> list[Path] | None:
+    """The exposure files that ``exposures`` name (:func:`analysis.pipeline.batch.exposure_files`), or
+    None once it has said on stderr what is missing: no exposure, or no calibration folder."""
+    from analysis.pipeline.batch import exposure_files
 
-
-class _Calibrations:
-    """Calibrations of a batch, loaded once per camera and zoom/focus setting."""
-
-    def __init__(self, source: Path, cache_dir: Path | None) -> None:
-        self.source, self.cache_dir = source, cache_dir
-        self._loaded: dict[tuple, Any] = {}
-
-    def __call__(self, exposure: Any) -> Any:
-        from analysis.calibration.cache import load_calibration
-
-        lens = exposure.metadata.get("devices", {}).get("lens", {})
-        key = (exposure.serial, lens.get("zoomStep"), lens.get("focusStep"))
-        if key not in self._loaded:
-            self._loaded[key] = load_calibration(self.source, exposure.metadata, serial=exposure.serial,
-                                                 cache_dir=self.cache_dir)
-        return self._loaded[key]
+    files = exposure_files(exposures)
+    if not files:
+        print(f"plenodust {command}: no .lfp or .RAW exposure found in " + ", ".join(str(p) for p in exposures),
+              file=sys.stderr)
+        return None
+    if not calibration.exists():
+        print(f"plenodust {command}: calibration {calibration} does not exist; give the folder of the camera's "
+              "MOD_nnnn.RAW/.TXT white images or a data.C.N bundle", file=sys.stderr)
+        return None
+    return files
 
 
 class _Coordinates:
@@ -185,6 +169,7 @@ def run(args: argparse.Namespace) -> int:
     from analysis.formats.exposure import read_exposure
     from analysis.formats.particle_table import combine, write_csv
     from analysis.pipeline.result import write_results_hdf5
+    from analysis.pipeline.batch import CalibrationFolder
     from analysis.pipeline.process import process
 
     try:
@@ -192,14 +177,8 @@ def run(args: argparse.Namespace) -> int:
     except AnalysisError as exc:
         print(f"plenodust process: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    files = expand_exposures(args.exposures)
-    if not files:
-        print("plenodust process: no .lfp or .RAW exposure found in "
-              + ", ".join(str(p) for p in args.exposures), file=sys.stderr)
-        return EXIT_USAGE
-    if not args.calibration.exists():
-        print(f"plenodust process: calibration {args.calibration} does not exist; give the folder of the "
-              "camera's MOD_nnnn.RAW/.TXT white images or a data.C.N bundle", file=sys.stderr)
+    files = batch_inputs("process", args.exposures, args.calibration)
+    if files is None:
         return EXIT_USAGE
     out: Path = args.out
     to_folder = len(files) > 1 and out.suffix.lower() not in _TABLE_SUFFIXES
@@ -220,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
               "plenodust calibrate-target wrote, or a folder of them", file=sys.stderr)
         return EXIT_USAGE
     cache_dir = None if args.no_cache else (args.cache or default_cache_dir())
-    calibrations = _Calibrations(args.calibration, cache_dir)
+    calibrations = CalibrationFolder(args.calibration, cache_dir)
     coordinates = _Coordinates(args.metric_calibration)
     cache = Cache(directory=cache_dir)
     say = Say(quiet=args.quiet)

@@ -21,7 +21,8 @@ from pathlib import Path
 from analysis.errors import AnalysisError
 
 from service.cli.link_cmd import add_link_arguments, link_params_from_args, report, write_linked
-from service.cli.process_cmd import Say, add_pipeline_arguments, default_cache_dir, load_kernels, params_from_args
+from service.cli.process_cmd import (Say, add_pipeline_arguments, batch_inputs, default_cache_dir, load_kernels,
+                                     params_from_args)
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 
@@ -46,7 +47,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from analysis.cache import Cache
-    from analysis.tracking.run import exposure_files, track
+    from analysis.tracking.run import track
 
     say = Say(quiet=args.quiet, prog="track")
     try:
@@ -58,14 +59,8 @@ def run(args: argparse.Namespace) -> int:
     if args.out.suffix.lower() not in (".csv", ".h5", ".hdf5", ".nxs"):
         print(f"plenodust track: --out {args.out} must end in .csv or .h5", file=sys.stderr)
         return EXIT_USAGE
-    files = exposure_files(args.exposures)
-    if not files:
-        print("plenodust track: no .lfp or .RAW exposure found in " + ", ".join(map(str, args.exposures)),
-              file=sys.stderr)
-        return EXIT_USAGE
-    if not args.calibration.exists():
-        print(f"plenodust track: calibration {args.calibration} does not exist; give the folder of the camera's "
-              "MOD_nnnn.RAW/.TXT white images or a data.C.N bundle", file=sys.stderr)
+    files = batch_inputs("track", args.exposures, args.calibration)
+    if files is None:
         return EXIT_USAGE
     cache_dir = None if args.no_cache else (args.cache or default_cache_dir())
     load_kernels(say)
