@@ -74,7 +74,7 @@ def prepare_case(work: Path, scenario: str, seed: int, size: int, centre_z: floa
     place = [] if centre_z is None else ["--centre-z", str(centre_z)]
     folder = work / (f"{scenario}-{seed}-{size}" + ("" if centre_z is None else f"-z{centre_z:g}")
                      + (f"-{tag}" if tag else ""))
-    if not (folder / "IMG_0001.lfp").is_file():
+    if not (folder / "scenario.json").is_file():  # written last: a killed simulation is done again
         subprocess.run([sys.executable, "-m", "service.cli.main", "simulate", "--scenario", scenario,
                         "--seed", str(seed), "--size", str(size), "--out", str(folder), "--quiet", *place,
                         *simulate_args], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
