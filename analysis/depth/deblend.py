@@ -83,10 +83,12 @@ def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
         return weak
     xy = np.column_stack([fit.sx_m, fit.sy_m])
     pairs = cKDTree(xy).query_pairs(LINE_OF_SIGHT_PITCHES * fitter.pitch_m, output_type="ndarray")
-    for a, b in pairs:
-        faint, bright = (a, b) if fit.intensity[a] < fit.intensity[b] else (b, a)
-        weak[faint] |= ((fit.intensity[faint] < PROBE_FRACTION * fit.intensity[bright])
-                        | (fit.residual[faint] > PROBE_RESIDUAL))
+    a, b = pairs[:, 0], pairs[:, 1]
+    a_fainter = fit.intensity[a] < fit.intensity[b]
+    faint, bright = np.where(a_fainter, a, b), np.where(a_fainter, b, a)
+    unproven = ((fit.intensity[faint] < PROBE_FRACTION * fit.intensity[bright])
+                | (fit.residual[faint] > PROBE_RESIDUAL))
+    weak[faint[unproven]] = True
     return weak
 
 
