@@ -15,6 +15,9 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
+import glob
+import re
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Hashable, Iterator
@@ -136,3 +139,17 @@ class Cache:
 
 
 _MISSING = object()
+
+
+def remove_older_versions(folder: Path, prefix: str, version: int) -> list[Path]:
+    """Delete the cache files ``folder/<prefix><k>*.npz`` of format versions ``k`` below ``version``:
+    an older plenodust wrote them and no newer one reads them (a look-up table is ~100 MB). Returns
+    what was removed; files that cannot be removed are left."""
+    removed = []
+    for old in Path(folder).glob(f"{glob.escape(prefix)}*.npz"):
+        match = re.match(re.escape(prefix) + r"(\d+)\.", old.name)
+        if match and int(match.group(1)) < version:
+            with contextlib.suppress(OSError):
+                old.unlink()
+                removed.append(old)
+    return removed

@@ -241,6 +241,31 @@ def test_cache_hit_skips_the_fit(white_folder, tmp_path):
     assert not any(p.name.endswith(".tmp") for p in path.parent.iterdir())
 
 
+def test_cache_files_of_older_formats_are_removed(white_folder, tmp_path):
+    """Writing a calibration and its look-up table removes the files an older plenodust wrote for
+    the same white image (tables are ~100 MB each); other white images' files and newer ones stay."""
+    from analysis.cache import Cache
+    from analysis.lightfield.table import TABLE_FORMAT_VERSION
+    from analysis.pipeline.tables import get_table, table_cache_path
+
+    meta = simulated_camera_metadata(size=SIZE)
+    first = load_calibration(white_folder, meta, serial=SERIAL, cache_dir=tmp_path / "probe")
+    folder = tmp_path / "cache" / SERIAL
+    folder.mkdir(parents=True)
+    sha = first.white_sha1
+    old = [folder / f"{sha}.v{CACHE_VERSION - 1}.npz", folder / f"{sha}.lut.v{TABLE_FORMAT_VERSION - 1}.o1.r1.npz"]
+    kept = [folder / f"{'0' * 40}.v{CACHE_VERSION - 1}.npz", folder / f"{sha}.lut.v{TABLE_FORMAT_VERSION + 1}.o1.r1.npz",
+            folder / "notes.txt"]
+    for path in old + kept:
+        path.write_bytes(b"x")
+    calibration = load_calibration(white_folder, meta, serial=SERIAL, cache_dir=tmp_path / "cache")
+    get_table(calibration, Cache(directory=tmp_path / "cache"))
+    assert cache_path(tmp_path / "cache", SERIAL, sha).is_file()
+    assert table_cache_path(tmp_path / "cache", calibration, 1.0).is_file()
+    assert not any(p.exists() for p in old)
+    assert all(p.exists() for p in kept)
+
+
 @pytest.mark.parametrize("damage", ["garbage", "truncated", "other_white"])
 def test_corrupt_cache_is_rebuilt(white_folder, tmp_path, caplog, damage):
     meta = simulated_camera_metadata(size=SIZE)

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from analysis.cache import remove_older_versions
 from analysis.camera.model import CameraModel, Lattice, Optics
 from analysis.errors import CalibrationError
 from analysis.formats.atomic_write import atomic_path
@@ -188,6 +189,7 @@ def cached_calibration(white: WhiteImage, *, cache_dir: Path | None, serial: str
     calibration = calibrate(white, fallback_metadata=fallback_metadata)
     try:
         save_calibration(calibration, path)
+        remove_older_versions(path.parent, f"{calibration.white_sha1}.v", CACHE_VERSION)
     except OSError as exc:
         # A read-only or full cache folder costs time on the next call, not this result.
         log.warning("could not write calibration cache %s (%s); continuing without it", path, exc)

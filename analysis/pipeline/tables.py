@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.cache import Cache
+from analysis.cache import Cache, remove_older_versions
 from analysis.calibration.calibrate import Calibration
 from analysis.calibration.drift import LatticeDrift
 from analysis.lightfield.table import (NORMALISATION, TABLE_FORMAT_VERSION, LightFieldTable, build_table, load_table,
@@ -86,6 +86,7 @@ def _save_quietly(table: LightFieldTable, path: Path, cache: Cache) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         save_table(table, path, cache=cache)
+        remove_older_versions(path.parent, path.name.split(".lut.v")[0] + ".lut.v", TABLE_FORMAT_VERSION)
     except OSError as exc:
         log.warning("could not write look-up table cache %s (%s); continuing without it", path, exc)
 
