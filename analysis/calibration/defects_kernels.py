@@ -9,23 +9,10 @@ import numpy as np
 from numba import njit, prange
 
 from analysis.camera.lattice_kernels import nearest_lens
+from analysis.order_statistics import median_in_place
 
 # fastmath without nnan/ninf (style guide): NaN marks pixels and lenses without a value.
 _FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
-
-@njit(cache=True, fastmath=_FASTMATH)
-def _median(values: np.ndarray, n: int) -> float:  # pragma: no cover - compiled
-    """Median of ``values[:n]`` (sorted in place)."""
-    for a in range(1, n):
-        v = values[a]
-        b = a - 1
-        while b >= 0 and values[b] > v:
-            values[b + 1] = values[b]
-            b -= 1
-        values[b + 1] = v
-    if n % 2:
-        return values[n // 2]
-    return 0.5 * (values[n // 2 - 1] + values[n // 2])
 
 
 @njit(cache=True, parallel=True, fastmath=_FASTMATH)
@@ -55,7 +42,7 @@ def lens_levels(image: np.ndarray, origin_x: float, origin_y: float, basis: np.n
                         if math.isfinite(v):
                             buf[n] = v
                             n += 1
-            out[b, a] = _median(buf, n) if n > 0 else np.nan
+            out[b, a] = median_in_place(buf, n) if n > 0 else np.nan
 
 
 @njit(cache=True, parallel=True, fastmath=_FASTMATH)
@@ -109,11 +96,11 @@ def predict_from_neighbours(image: np.ndarray, origin_x: float, origin_y: float,
                 out_pred[r, c] = np.nan
                 out_spread[r, c] = np.nan
                 continue
-            mid = _median(val, n)
+            mid = median_in_place(val, n)
             for q in range(n):
                 dev[q] = abs(val[q] - mid)
             out_pred[r, c] = mid
-            out_spread[r, c] = 1.4826 * _median(dev, n)
+            out_spread[r, c] = 1.4826 * median_in_place(dev, n)
 
 
 def lattice_steps(rings: int) -> np.ndarray:
@@ -150,17 +137,25 @@ def residual_and_sigma(balanced: np.ndarray, pred: np.ndarray, spread: np.ndarra
     h, w = balanced.shape
     for r in prange(h):
         for c in range(w):
-            m = means[r % 2, c % 2]
-            p = pred[r, c] * m
-            x = balanced[r, c] * m - p
-            if not (math.isfinite(p) and math.isfinite(x)):
-                out_residual[r, c] = np.nan
-                out_sigma[r, c] = np.nan
-                continue
-            noise = _noise_at(p, noise_level, noise_sigma)
-            s = spread[r, c] * m
+            x, s = _residual_at(balanced, pred, spread, means, noise_level, noise_sigma, sigma_scale, r, c)
             out_residual[r, c] = x
-            out_sigma[r, c] = sigma_scale * math.sqrt(noise * noise + s * s)
+            out_sigma[r, c] = s
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def _residual_at(balanced: np.ndarray, pred: np.ndarray, spread: np.ndarray, means: np.ndarray,
+                 noise_level: np.ndarray, noise_sigma: np.ndarray, sigma_scale: float, r: int,
+                 c: int) -> tuple[float, float]:  # pragma: no cover - compiled
+    """Pixel ``(r, c)``'s residual and sigma (DN) as :func:`residual_and_sigma` gives them; NaN, NaN
+    where the pixel or its prediction is missing."""
+    m = means[r % 2, c % 2]
+    p = pred[r, c] * m
+    x = balanced[r, c] * m - p
+    if not (math.isfinite(p) and math.isfinite(x)):
+        return np.nan, np.nan
+    noise = _noise_at(p, noise_level, noise_sigma)
+    sp = spread[r, c] * m
+    return x, sigma_scale * math.sqrt(noise * noise + sp * sp)
 
 
 @njit(cache=True, parallel=True, fastmath=_FASTMATH)
@@ -177,15 +172,8 @@ def accumulate_frame(balanced: np.ndarray, pred: np.ndarray, spread: np.ndarray,
     h, w = balanced.shape
     for r in prange(h):
         for c in range(w):
-            m = means[r % 2, c % 2]
-            p = pred[r, c] * m
-            x = balanced[r, c] * m - p
-            if not (math.isfinite(p) and math.isfinite(x)):
-                continue
-            noise = _noise_at(p, noise_level, noise_sigma)
-            sp = spread[r, c] * m
-            s = sigma_scale * math.sqrt(noise * noise + sp * sp)
-            if s <= 0.0:
+            x, s = _residual_at(balanced, pred, spread, means, noise_level, noise_sigma, sigma_scale, r, c)
+            if not s > 0.0:  # missing (NaN) or no noise
                 continue
             inv = 1.0 / (s * s)
             sum_w[r, c] += inv

@@ -21,6 +21,8 @@ import numpy as np
 from numba import njit, prange
 from scipy.ndimage import binary_dilation, median_filter
 
+from analysis.order_statistics import median_in_place
+
 from .table import LightFieldTable
 
 #: Neighbourhood of the medians over lenses, in lenses (a square in lattice indices, 25 lenses).
@@ -164,7 +166,7 @@ def _lens_medians(flat, pixel_index, weight, u_m, v_m, start, black, r2_max):  #
             if u_m[j] * u_m[j] + v_m[j] * v_m[j] <= r2_max:
                 buf[m] = (np.float64(flat[pixel_index[j]]) - black) / max(np.float64(weight[j]), 1e-6)
                 m += 1
-        out[k] = _median_small(buf, m) if m > 0 else np.nan
+        out[k] = median_in_place(buf, m) if m > 0 else np.nan
     return out
 
 
@@ -224,7 +226,7 @@ def _structured_background(flat, pixel_index, weight, u_m, v_m, start, lens_ij, 
                         buf[m] = v
                         m += 1
             if m > 0:
-                along_i[slot[k], c] = _median_small(buf, m)
+                along_i[slot[k], c] = median_in_place(buf, m)
     # Sample ids of the marked lenses, in table order, and where each lens's begin.
     first = np.zeros(n_lens + 1, dtype=np.int64)
     for k in range(n_lens):
@@ -250,18 +252,5 @@ def _structured_background(flat, pixel_index, weight, u_m, v_m, start, lens_ij, 
                             m += 1
             pos = first[k] + j - start[k]
             ids[pos] = j
-            out[pos] = _median_small(buf, m) if m > 0 else np.nan
+            out[pos] = median_in_place(buf, m) if m > 0 else np.nan
     return ids, out
-
-
-@njit(cache=True, inline="always")
-def _median_small(buf, m):  # pragma: no cover - numba
-    # Median of buf[:m] (tens at most) by insertion sort in place.
-    for a in range(1, m):
-        x = buf[a]
-        b = a - 1
-        while b >= 0 and buf[b] > x:
-            buf[b + 1] = buf[b]
-            b -= 1
-        buf[b + 1] = x
-    return buf[m // 2] if m % 2 else 0.5 * (buf[m // 2 - 1] + buf[m // 2])
