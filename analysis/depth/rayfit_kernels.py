@@ -16,6 +16,9 @@ import numpy as np
 from numba import prange
 
 FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
+#: A fine pass whose depth lies farther than this fraction of its half-window from the centre is
+#: run again about it (when the caller asks for it: ``recentre``).
+RECENTRE_FRACTION = 0.5
 
 
 class Cells(NamedTuple):
@@ -50,8 +53,10 @@ class PriorTerms(NamedTuple):
 
 @numba.njit(cache=True, parallel=True, fastmath=FASTMATH)
 def fit_all(centres, sample_ptr, lens_ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, cells, coarse, fine, prior,
-            out, order, slot_ptr):
-    # Per particle, a coarse grid search over [c_lo, c_hi] then a fine one around its result;
+            recentre, out, order, slot_ptr):
+    # Per particle, a coarse grid search over [c_lo, c_hi] then a fine one around its result,
+    # centred again on its own result up to `recentre` times while that lies beyond
+    # RECENTRE_FRACTION of the window from the centre;
     # `coarse` and `fine` are GridPass tuples, `prior` a PriorTerms tuple (one entry per particle).
     # One slot of particles (order[slot_ptr[s]:slot_ptr[s + 1]]) per prange iteration, one slot per
     # thread; each particle writes only its own row of `out`.
@@ -73,6 +78,12 @@ def fit_all(centres, sample_ptr, lens_ptr, uv, values, censored, sx0, sy0, c_lo,
             half_c = max(2.0 * first[6], 1.5 * step)
             _fit_one(cen, ptr, uv, values, censored, first[0], first[1], first[2] - half_c, first[2] + half_c, fine,
                      cells, c_prior[p], prior_k[p], prior_floor[p], out[p])
+            for _ in range(recentre):
+                if out[p, 3] <= 0.0 or abs(out[p, 2] - first[2]) <= RECENTRE_FRACTION * half_c:
+                    break
+                first[:] = out[p, :]
+                _fit_one(cen, ptr, uv, values, censored, first[0], first[1], first[2] - half_c, first[2] + half_c,
+                         fine, cells, c_prior[p], prior_k[p], prior_floor[p], out[p])
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
