@@ -364,3 +364,38 @@ def test_a_saturated_particle_keeps_its_depth(blur):
 
     dim, censored, as_values = depth_error(1800.0, 4095.0), depth_error(14000.0, 4095.0), depth_error(14000.0, 1e9)
     assert censored < 2.0 * dim + 0.005 and censored < 0.8 * as_values, (dim, censored, as_values)
+
+
+def _pair_fits(alphas, truth_alphas, brightness):
+    """Two fits started at ``alphas`` on one chief ray, each refitted twice with the other's light
+    taken off (as the deblend refits them), on a rendering of particles at ``truth_alphas``."""
+    model, table, s_hat, image = _line_of_sight_scene(truth_alphas, brightness)
+    fitter, _, _ = _one_fit(model, table, s_hat, image, alphas[0])
+    n = len(alphas)
+    fit = fitter.fit(np.full(n, s_hat[0]), np.full(n, s_hat[1]), np.asarray(alphas, float),
+                     alpha_half_range=0.0005)
+    for _ in range(2):
+        fit = fitter.fit(fit.sx_m, fit.sy_m, fit.alpha, subtract=fitter.render(fit), own=fit,
+                         alpha_half_range=0.0005)
+    return fitter, fit
+
+
+def test_one_particle_fitted_twice_on_its_line_of_sight_is_one():
+    """Two fits of one blurred particle at nearly its depth (each refitted with the other's light
+    taken off, as deblending does): one fit explains the pixels better than the pair."""
+    from analysis.depth.deblend import one_particle
+
+    fitter, fit = _pair_fits([1.0116, 1.0128], [1.0122], [2400.0])
+    assert np.all(fit.intensity > 0.2 * fit.intensity.sum())  # both hold light of their own
+    faint, bright = np.argsort(fit.intensity)
+    assert one_particle(fitter, fit, np.array([faint]), np.array([bright])).all()
+
+
+def test_a_true_pair_on_one_line_of_sight_is_two():
+    from analysis.depth.deblend import one_particle
+
+    truth = [0.99810, 1.00297]  # the shadowing pair of the split test
+    fitter, fit = _pair_fits(truth, truth, [1985.0, 1900.0])
+    assert np.allclose(fit.alpha, truth, atol=4e-4)
+    faint, bright = np.argsort(fit.intensity)
+    assert not one_particle(fitter, fit, np.array([faint]), np.array([bright])).any()
