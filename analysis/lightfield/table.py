@@ -60,7 +60,7 @@ class LightFieldTable:
     lens : ndarray of shape (N,), int32
         Index of each sample's lens into the ``lens_*`` arrays; non-decreasing (lenses are
         numbered by row ``j``, then ``i``, and samples follow them), so the samples of lens ``k``
-        are ``searchsorted(lens, k) ... searchsorted(lens, k + 1)``.
+        are ``lens_start[k] ... lens_start[k + 1]``.
     u_m, v_m : ndarray of shape (N,), float32
         Main-lens aperture point seen by each sample, metres from the optical axis (upright frame):
         ``-(offset from the micro-image centre) * optics.aperture_m_per_px``.
@@ -149,6 +149,11 @@ class LightFieldTable:
         """ndarray (L, 2) float32: each lens's relative lattice index ``(ii, jj)`` (``jj`` = site row)."""
         i0, j0 = self.site_origin
         return np.stack([self.lens_ij[:, 0] - i0, self.lens_ij[:, 1] - j0], axis=1).astype(np.float32)
+
+    @cached_property
+    def lens_start(self) -> np.ndarray:
+        """ndarray (L + 1,) int64: the samples of lens ``k`` are ``lens_start[k] ... lens_start[k + 1]``."""
+        return np.concatenate([[0], np.cumsum(np.bincount(self.lens, minlength=self.n_lenses))]).astype(np.int64)
 
     @cached_property
     def max_row_shift(self) -> float:
