@@ -100,7 +100,11 @@ DRIFT_STEP_RAD = 4e-6
 
 def drifted_fit_table(calibration: Calibration, cache: Cache, drift: LatticeDrift | None) -> LightFieldTable:
     """The depth fit's table as an exposure with this lattice drift sees it (the calibration's own
-    when there is none, or less than a step): :func:`analysis.lightfield.table.shifted_table`."""
+    when there is none, or less than a step): :func:`analysis.lightfield.table.shifted_table`.
+
+    ``cache`` keeps one drifted table per calibration, the last one asked for: a run's lattice
+    drifts slowly, and each drifted table holds 55 MB (an F01's) that older drifts would keep
+    until the cache's budget pushed them out."""
     base = get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
     if drift is None:
         return base
@@ -112,10 +116,14 @@ def drifted_fit_table(calibration: Calibration, cache: Cache, drift: LatticeDrif
     steps = LatticeDrift((q[0] * DRIFT_STEP_PX, q[1] * DRIFT_STEP_PX), q[2] * DRIFT_STEP_RAD, drift.sigma_px,
                          drift.n_blocks)
 
-    def make() -> LightFieldTable:
-        cx, cy = lattice.centre(base.lens_ij[:, 0], base.lens_ij[:, 1])
-        shift = np.column_stack(steps.displacement(cx, cy, lattice))
-        optics = calibration.model.optics
-        return shifted_table(base, calibration.devignetting_without_defects, shift,
-                             m_per_px=optics.pixel_pitch_m / optics.projection_factor)
-    return cache.get_or_make(("drifted_table", base.uid, q), make)
+    key = ("drifted_table", base.uid)
+    held = cache.take(key)  # taken, so that the previous drift's is not held while another is built
+    if held is not None and held[0] == q:
+        return cache.put(key, held)[1]
+    del held
+    cx, cy = lattice.centre(base.lens_ij[:, 0], base.lens_ij[:, 1])
+    shift = np.column_stack(steps.displacement(cx, cy, lattice))
+    optics = calibration.model.optics
+    table = shifted_table(base, calibration.devignetting, shift, m_per_px=optics.pixel_pitch_m / optics.projection_factor,
+                          patch=calibration.repaired_defects)
+    return cache.put(key, (q, table))[1]
