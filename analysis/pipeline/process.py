@@ -207,6 +207,11 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         product = products(stack, sub, out=None if keep_stack else stack)
 
     peaks, tracks = locate(product, alphas, params, threshold=threshold, clock=clock)
+    # The depth stages read the raw image, not the stack or the samples: let them go (an F01's
+    # fine stack and samples, 30 MB more at the peak of the next pass's own).
+    samples = product = None
+    if not keep_stack:
+        stack = None
     if params.user_range:
         low, high = edge_maxima(tracks.brightness)
         if low.size + high.size:
@@ -294,6 +299,7 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, background: Backgroun
     rsub = subaperture_image(residual, table, fraction=params.aperture_fraction, blur_sigma_px=params.blur_sigma_px,
                              grid=fitter.grid, samples=rs, cache=fitter.cache)
     new, new_tracks = locate(products(rstack, rsub, out=rstack), alphas, params, threshold=threshold)
+    del residual, rs, rstack, rsub  # not needed by the fits below (an F01's: 40 MB and more)
     # Left-over light of an imperfectly modelled particle lies within its reach and is weak next to
     # it; a faint particle of its own may lie anywhere (brightness spreads 10x or more): so each
     # candidate is weighed against the found particles whose light reaches it, not against all.
