@@ -112,3 +112,16 @@ def test_the_cache_keeps_one_drifted_table_per_calibration(case):
     base = get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
     assert [value[1] for _, value in cache.entries("drifted_table", base.uid)] == [second]
     assert drifted_fit_table(calibration, cache, None) is base
+
+
+def test_released_pages_of_a_mapped_map_read_back_the_same(tmp_path):
+    from analysis.calibration.cache import release_pages
+
+    data = np.arange(1 << 20, dtype=np.float32)
+    np.save(tmp_path / "map.npy", data)
+    mapped = np.load(tmp_path / "map.npy", mmap_mode="r").view(np.ndarray)
+    assert float(mapped.sum(dtype=np.float64)) == float(data.sum(dtype=np.float64))
+    release_pages(mapped)
+    assert np.array_equal(mapped, data)  # read back from the file
+    release_pages(data)  # in memory: nothing to do
+    assert data[12] == 12.0

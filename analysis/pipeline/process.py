@@ -45,6 +45,7 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from analysis.cache import Cache
+from analysis.calibration.cache import release_pages
 from analysis.calibration.calibrate import Calibration
 from analysis.calibration.drift import LatticeDrift, block_phases, estimate_drift
 from analysis.camera.coordinates import Calibration3D, ThinLensCalibration, coordinate_warnings, to_physical
@@ -254,8 +255,12 @@ def _lattice_drift(exposure: Exposure, calibration: Calibration, cache: Cache, n
     """How far the exposure's micro-images moved from the white image's (None: too little light to
     tell; the white image's lattice then stands)."""
     lattice = calibration.model.lattice
-    white = cache.get_or_make(("white_phases", calibration.white_sha1),
-                              lambda: block_phases(calibration.devignetting, lattice))
+
+    def white_phases() -> tuple[np.ndarray, np.ndarray]:
+        phases = block_phases(calibration.devignetting, lattice)
+        release_pages(calibration.devignetting)
+        return phases
+    white = cache.get_or_make(("white_phases", calibration.white_sha1), white_phases)
     return estimate_drift(exposure.image, lattice, white, noise_dn=noise_dn)
 
 

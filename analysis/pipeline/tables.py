@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from analysis.cache import Cache, remove_older_versions
+from analysis.calibration.cache import release_pages
 from analysis.calibration.calibrate import Calibration
 from analysis.calibration.drift import LatticeDrift
 from analysis.lightfield.table import (NORMALISATION, TABLE_FORMAT_VERSION, LightFieldTable, build_table, load_table,
@@ -64,6 +65,7 @@ def get_table(calibration: Calibration, cache: Cache, *, grid_oversample: float 
             table = None
     if table is None or (table.height, table.width) != (calibration.model.height, calibration.model.width):
         table = build_table(calibration, grid_oversample=grid_oversample, rim_px=rim_px, min_weight=MIN_WEIGHT)
+        release_pages(calibration.devignetting)
         if path is not None:
             _save_quietly(table, path, cache)
     return cache.put(key, table)
@@ -126,4 +128,5 @@ def drifted_fit_table(calibration: Calibration, cache: Cache, drift: LatticeDrif
     optics = calibration.model.optics
     table = shifted_table(base, calibration.devignetting, shift, m_per_px=optics.pixel_pitch_m / optics.projection_factor,
                           patch=calibration.repaired_defects)
+    release_pages(calibration.devignetting)
     return cache.put(key, (q, table))[1]
