@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import mmap
 import re
 import struct
 import zipfile
@@ -127,6 +128,23 @@ def _mapped_member(path: Path, name: str) -> np.ndarray | None:
         return None
     return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape,
                      order="F" if fortran else "C").view(np.ndarray)
+
+
+def release_pages(array: np.ndarray) -> None:
+    """Let the system drop the pages of a file-mapped array (the devignetting map, as
+    :func:`load_calibration` maps it) from this process's memory once it has been read: they stay
+    in the file cache and are read back if the array is used again. Nothing for arrays in memory.
+
+    Read once per exposure's drift (to build a drifted table), the map's 43 MB otherwise stay
+    resident for the life of the process."""
+    base = array
+    while base is not None and not isinstance(base, mmap.mmap):
+        base = getattr(base, "base", None)
+    if base is not None and hasattr(mmap, "MADV_DONTNEED"):
+        try:
+            base.madvise(mmap.MADV_DONTNEED)
+        except (OSError, ValueError):  # a closed map, or a system that refuses: only memory is at stake
+            pass
 
 
 def load_calibration(source: Path, metadata: dict, *, serial: str | None = None,

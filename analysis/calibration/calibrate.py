@@ -100,9 +100,19 @@ class Calibration:
         the same Bayer colour that are not defective (the map itself when there are none): for reading
         the white image between pixels (a drifted lattice's weights), where a hot pixel would leak into
         its neighbours."""
-        if self.defect_mask is None:
+        if self.defects is None or len(self.defects) == 0:  # (not defect_mask: a 10 MB map to say so)
             return self.devignetting
         return repaired(self.devignetting, self.defects.index)
+
+    @cached_property
+    def repaired_defects(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(index, values)``: the defective pixels (flat, sorted) and their values in
+        :attr:`devignetting_without_defects`, for readers of the white image that patch those few
+        pixels instead of holding a repaired copy of the whole map (43 MB for an F01)."""
+        if self.defects is None or len(self.defects) == 0:
+            return np.empty(0, np.int64), np.empty(0, self.devignetting.dtype)
+        index = np.sort(np.asarray(self.defects.index, dtype=np.int64))
+        return index, repaired_values(self.devignetting, index)
 
     @property
     def defects_key(self) -> str:
@@ -122,12 +132,28 @@ def repaired(image: np.ndarray, index: np.ndarray) -> np.ndarray:
     >>> float(repaired(im, np.array([2 * 6 + 3]))[2, 3])
     15.0
     """
-    h, w = image.shape
     out = np.array(image, copy=True)
+    out.reshape(-1)[np.asarray(index, dtype=np.int64)] = repaired_values(image, index)
+    return out
+
+
+def repaired_values(image: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """The values :func:`repaired` gives the pixels at flat ``index`` (their own where no neighbour
+    of their colour is sound), in the image's dtype, without copying the image.
+
+    Examples
+    --------
+    >>> im = np.arange(36, dtype=np.float32).reshape(6, 6)
+    >>> im[2, 3] = 1000.0
+    >>> repaired_values(im, np.array([2 * 6 + 3])).tolist()
+    [15.0]
+    """
+    h, w = image.shape
     bad = np.zeros(h * w, dtype=bool)
     bad[index] = True
     bad = bad.reshape(h, w)
     rows, cols = np.divmod(np.asarray(index, dtype=np.int64), w)
+    out = np.asarray(image)[rows, cols].copy()
     green = (rows + cols) % 2 == 1
     offsets = [(-2, 0), (2, 0), (0, -2), (0, 2), (-1, -1), (-1, 1), (1, -1), (1, 1)]
     values = np.full((rows.size, len(offsets)), np.nan)
@@ -137,7 +163,7 @@ def repaired(image: np.ndarray, index: np.ndarray) -> np.ndarray:
         ok[ok] &= ~bad[r[ok], c[ok]]
         values[ok, k] = image[r[ok], c[ok]]
     have = np.isfinite(values).any(axis=1)
-    out[rows[have], cols[have]] = np.nanmedian(values[have], axis=1)
+    out[have] = np.nanmedian(values[have], axis=1)
     return out
 
 

@@ -137,12 +137,16 @@ def _noise_model(residual: np.ndarray, signal: np.ndarray, sigma: float) -> tupl
     if signal.size < 1000 or np.ptp(signal) < 4 * sigma:
         return sigma * sigma, 0.0
     edges = np.unique(np.quantile(signal, np.linspace(0.0, 1.0, 11)))
-    which = np.clip(np.searchsorted(edges, signal, side="right") - 1, 0, edges.size - 2)
+    which = np.clip(np.searchsorted(edges, signal, side="right") - 1, 0, edges.size - 2).astype(np.int8)
+    # The bins one after another (a radix sort of the small bin numbers), instead of a mask per bin.
+    order = np.argsort(which, kind="stable")
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(which, minlength=edges.size - 1))])
+    residual, signal = residual[order], signal[order]
     s_mid, var, count = [], [], []
     for k in range(edges.size - 1):
-        r = residual[which == k]
+        r = residual[bounds[k]:bounds[k + 1]]
         if r.size >= 50:
-            s_mid.append(float(np.median(signal[which == k])))
+            s_mid.append(float(np.median(signal[bounds[k]:bounds[k + 1]])))
             var.append((1.4826 * float(np.median(np.abs(r - np.median(r))))) ** 2)
             count.append(r.size)
     if len(var) < 2:

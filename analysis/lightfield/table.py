@@ -60,7 +60,7 @@ class LightFieldTable:
     lens : ndarray of shape (N,), int32
         Index of each sample's lens into the ``lens_*`` arrays; non-decreasing (lenses are
         numbered by row ``j``, then ``i``, and samples follow them), so the samples of lens ``k``
-        are ``searchsorted(lens, k) ... searchsorted(lens, k + 1)``.
+        are ``lens_start[k] ... lens_start[k + 1]``.
     u_m, v_m : ndarray of shape (N,), float32
         Main-lens aperture point seen by each sample, metres from the optical axis (upright frame):
         ``-(offset from the micro-image centre) * optics.aperture_m_per_px``.
@@ -149,6 +149,11 @@ class LightFieldTable:
         """ndarray (L, 2) float32: each lens's relative lattice index ``(ii, jj)`` (``jj`` = site row)."""
         i0, j0 = self.site_origin
         return np.stack([self.lens_ij[:, 0] - i0, self.lens_ij[:, 1] - j0], axis=1).astype(np.float32)
+
+    @cached_property
+    def lens_start(self) -> np.ndarray:
+        """ndarray (L + 1,) int64: the samples of lens ``k`` are ``lens_start[k] ... lens_start[k + 1]``."""
+        return np.concatenate([[0], np.cumsum(np.bincount(self.lens, minlength=self.n_lenses))]).astype(np.int64)
 
     @cached_property
     def max_row_shift(self) -> float:
@@ -332,7 +337,7 @@ def build_table_from_model(model: CameraModel, devignetting: np.ndarray | None =
 
 
 def shifted_table(table: LightFieldTable, devignetting: np.ndarray, shift_px: np.ndarray, *,
-                  m_per_px: float) -> LightFieldTable:
+                  m_per_px: float, patch: tuple[np.ndarray, np.ndarray] | None = None) -> LightFieldTable:
     """The table of an exposure whose micro-images moved by ``shift_px`` (per lens, (L, 2), sensor
     pixels) from where the white image had them: the lattice drifted (thermal, mechanical).
 
@@ -341,6 +346,10 @@ def shifted_table(table: LightFieldTable, devignetting: np.ndarray, shift_px: np
     projection factor``); the weights are the white image read where each pixel now sits relative to
     its micro-image (bilinear, at ``pixel - shift``). For shifts well below a pixel: the pixels
     that a larger shift would bring into or out of a micro-image are not added or dropped.
+
+    ``patch``: ``(index, values)``, pixels of ``devignetting`` (flat, sorted) read as these values
+    instead (the calibration's repaired defects, ``Calibration.repaired_defects``), so that no
+    repaired copy of the whole map is needed.
     """
     shift_px = np.asarray(shift_px, dtype=np.float64)
     u_per_px = table.aperture_radius_m / table.micro_image_radius_px
@@ -350,19 +359,46 @@ def shifted_table(table: LightFieldTable, devignetting: np.ndarray, shift_px: np
     probe = table.pixel_index[:: max(1, table.n_samples // 10_000)]
     probe_w = table.weight[:: max(1, table.n_samples // 10_000)]
     norm = float(np.median(devignetting.reshape(-1)[probe] / np.maximum(probe_w, 1e-6)))
-    weight = _resampled(devignetting, table.pixel_index, table.lens, shift_px, table.width, 1.0 / norm)
+    # One pass over the samples, no temporaries (as numpy, 0.15 s and 80 MB on an F01's fit table).
+    u_m, v_m, weight = (np.empty(table.n_samples, dtype=np.float32) for _ in range(3))
+    index, values = (np.empty(0, np.int64), np.empty(0, devignetting.dtype)) if patch is None else patch
+    index = np.asarray(index, dtype=np.int64)
+    bits = np.zeros((devignetting.size + 7) // 8 if index.size else 0, dtype=np.uint8)  # 1 bit per pixel
+    np.bitwise_or.at(bits, index >> 3, (1 << (index & 7)).astype(np.uint8))
+    _shift_samples(devignetting, bits, index, np.asarray(values, dtype=devignetting.dtype), table.pixel_index,
+                   table.lens, table.u_m, table.v_m, shift_px, du, table.width, 1.0 / norm, u_m, v_m, weight)
     return dataclasses.replace(
-        table, u_m=table.u_m + du[table.lens, 0], v_m=table.v_m + du[table.lens, 1], weight=weight,
-        lens_xy_m=table.lens_xy_m + shift_px * m_per_px, uid=uuid.uuid4().hex)
+        table, u_m=u_m, v_m=v_m, weight=weight, lens_xy_m=table.lens_xy_m + shift_px * m_per_px, uid=uuid.uuid4().hex)
+
+
+@njit(cache=True, inline="always")
+def _white_at(devignetting, bits, index, values, y, x, width):  # pragma: no cover - numba
+    # devignetting[y, x], or its patched value where bits marks the pixel.
+    p = y * width + x
+    if (bits[p >> 3] >> (p & 7)) & 1:
+        return values[np.searchsorted(index, p)]
+    return devignetting[y, x]
+
+
+@njit(cache=True, inline="always")
+def _pair_marked(bits, p):  # pragma: no cover - numba
+    # Whether bits marks pixel p or p + 1.
+    b = p >> 3
+    word = np.int64(bits[b]) | (np.int64(bits[b + 1]) << 8 if b + 1 < bits.size else 0)
+    return (word >> (p & 7)) & 3 != 0
 
 
 @njit(cache=True, parallel=True)
-def _resampled(devignetting, pixel_index, lens, shift_px, width, scale):  # pragma: no cover - numba
-    # The white image at (pixel centre - shift of its lens), bilinear, times scale; float32.
+def _shift_samples(devignetting, bits, index, values, pixel_index, lens, u_m, v_m, shift_px, du, width, scale,
+                   out_u, out_v, out_w):  # pragma: no cover - numba
+    # Per sample: the aperture point moved by its lens's du (float32 sums, as numpy adds them), and
+    # the white image at (pixel centre - shift of its lens), bilinear, times scale. Each sample
+    # writes its own entries.
     n = pixel_index.size
     h = devignetting.shape[0]
-    out = np.empty(n, dtype=np.float32)
     for k in prange(n):
+        out_u[k] = u_m[k] + du[lens[k], 0]
+        out_v[k] = v_m[k] + du[lens[k], 1]
         row = pixel_index[k] // width
         col = pixel_index[k] - row * width
         x = col - shift_px[lens[k], 0]
@@ -371,10 +407,15 @@ def _resampled(devignetting, pixel_index, lens, shift_px, width, scale):  # prag
         y0 = min(max(int(np.floor(y)), 0), h - 2)
         fx = min(max(x - x0, 0.0), 1.0)
         fy = min(max(y - y0, 0.0), 1.0)
-        v = ((1 - fx) * (1 - fy) * devignetting[y0, x0] + fx * (1 - fy) * devignetting[y0, x0 + 1]
-             + (1 - fx) * fy * devignetting[y0 + 1, x0] + fx * fy * devignetting[y0 + 1, x0 + 1])
-        out[k] = v * scale
-    return out
+        if bits.size and (_pair_marked(bits, y0 * width + x0) or _pair_marked(bits, (y0 + 1) * width + x0)):
+            v = ((1 - fx) * (1 - fy) * _white_at(devignetting, bits, index, values, y0, x0, width)
+                 + fx * (1 - fy) * _white_at(devignetting, bits, index, values, y0, x0 + 1, width)
+                 + (1 - fx) * fy * _white_at(devignetting, bits, index, values, y0 + 1, x0, width)
+                 + fx * fy * _white_at(devignetting, bits, index, values, y0 + 1, x0 + 1, width))
+        else:  # no patched pixel among the four (nearly every sample)
+            v = ((1 - fx) * (1 - fy) * devignetting[y0, x0] + fx * (1 - fy) * devignetting[y0, x0 + 1]
+                 + (1 - fx) * fy * devignetting[y0 + 1, x0] + fx * fy * devignetting[y0 + 1, x0 + 1])
+        out_w[k] = v * scale
 
 
 def default_grid(lens_xy_m: np.ndarray, basis_m: np.ndarray, *, oversample: float = 1.0) -> ImageGrid:

@@ -45,6 +45,7 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from analysis.cache import Cache
+from analysis.calibration.cache import release_pages
 from analysis.calibration.calibrate import Calibration
 from analysis.calibration.drift import LatticeDrift, block_phases, estimate_drift
 from analysis.camera.coordinates import Calibration3D, ThinLensCalibration, coordinate_warnings, to_physical
@@ -207,6 +208,11 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         product = products(stack, sub, out=None if keep_stack else stack)
 
     peaks, tracks = locate(product, alphas, params, threshold=threshold, clock=clock)
+    # The depth stages read the raw image, not the stack or the samples: let them go (an F01's
+    # fine stack and samples, 30 MB more at the peak of the next pass's own).
+    samples = product = None
+    if not keep_stack:
+        stack = None
     if params.user_range:
         low, high = edge_maxima(tracks.brightness)
         if low.size + high.size:
@@ -249,8 +255,12 @@ def _lattice_drift(exposure: Exposure, calibration: Calibration, cache: Cache, n
     """How far the exposure's micro-images moved from the white image's (None: too little light to
     tell; the white image's lattice then stands)."""
     lattice = calibration.model.lattice
-    white = cache.get_or_make(("white_phases", calibration.white_sha1),
-                              lambda: block_phases(calibration.devignetting, lattice))
+
+    def white_phases() -> tuple[np.ndarray, np.ndarray]:
+        phases = block_phases(calibration.devignetting, lattice)
+        release_pages(calibration.devignetting)
+        return phases
+    white = cache.get_or_make(("white_phases", calibration.white_sha1), white_phases)
     return estimate_drift(exposure.image, lattice, white, noise_dn=noise_dn)
 
 
@@ -294,6 +304,7 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, background: Backgroun
     rsub = subaperture_image(residual, table, fraction=params.aperture_fraction, blur_sigma_px=params.blur_sigma_px,
                              grid=fitter.grid, samples=rs, cache=fitter.cache)
     new, new_tracks = locate(products(rstack, rsub, out=rstack), alphas, params, threshold=threshold)
+    del residual, rs, rstack, rsub  # not needed by the fits below (an F01's: 40 MB and more)
     # Left-over light of an imperfectly modelled particle lies within its reach and is weak next to
     # it; a faint particle of its own may lie anywhere (brightness spreads 10x or more): so each
     # candidate is weighed against the found particles whose light reaches it, not against all.

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from analysis.cache import Cache, remove_older_versions
+from analysis.calibration.cache import release_pages
 from analysis.calibration.calibrate import Calibration
 from analysis.calibration.drift import LatticeDrift
 from analysis.lightfield.table import (NORMALISATION, TABLE_FORMAT_VERSION, LightFieldTable, build_table, load_table,
@@ -64,6 +65,7 @@ def get_table(calibration: Calibration, cache: Cache, *, grid_oversample: float 
             table = None
     if table is None or (table.height, table.width) != (calibration.model.height, calibration.model.width):
         table = build_table(calibration, grid_oversample=grid_oversample, rim_px=rim_px, min_weight=MIN_WEIGHT)
+        release_pages(calibration.devignetting)
         if path is not None:
             _save_quietly(table, path, cache)
     return cache.put(key, table)
@@ -100,7 +102,11 @@ DRIFT_STEP_RAD = 4e-6
 
 def drifted_fit_table(calibration: Calibration, cache: Cache, drift: LatticeDrift | None) -> LightFieldTable:
     """The depth fit's table as an exposure with this lattice drift sees it (the calibration's own
-    when there is none, or less than a step): :func:`analysis.lightfield.table.shifted_table`."""
+    when there is none, or less than a step): :func:`analysis.lightfield.table.shifted_table`.
+
+    ``cache`` keeps one drifted table per calibration, the last one asked for: a run's lattice
+    drifts slowly, and each drifted table holds 55 MB (an F01's) that older drifts would keep
+    until the cache's budget pushed them out."""
     base = get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
     if drift is None:
         return base
@@ -112,10 +118,15 @@ def drifted_fit_table(calibration: Calibration, cache: Cache, drift: LatticeDrif
     steps = LatticeDrift((q[0] * DRIFT_STEP_PX, q[1] * DRIFT_STEP_PX), q[2] * DRIFT_STEP_RAD, drift.sigma_px,
                          drift.n_blocks)
 
-    def make() -> LightFieldTable:
-        cx, cy = lattice.centre(base.lens_ij[:, 0], base.lens_ij[:, 1])
-        shift = np.column_stack(steps.displacement(cx, cy, lattice))
-        optics = calibration.model.optics
-        return shifted_table(base, calibration.devignetting_without_defects, shift,
-                             m_per_px=optics.pixel_pitch_m / optics.projection_factor)
-    return cache.get_or_make(("drifted_table", base.uid, q), make)
+    key = ("drifted_table", base.uid)
+    held = cache.take(key)  # taken, so that the previous drift's is not held while another is built
+    if held is not None and held[0] == q:
+        return cache.put(key, held)[1]
+    del held
+    cx, cy = lattice.centre(base.lens_ij[:, 0], base.lens_ij[:, 1])
+    shift = np.column_stack(steps.displacement(cx, cy, lattice))
+    optics = calibration.model.optics
+    table = shifted_table(base, calibration.devignetting, shift, m_per_px=optics.pixel_pitch_m / optics.projection_factor,
+                          patch=calibration.repaired_defects)
+    release_pages(calibration.devignetting)
+    return cache.put(key, (q, table))[1]

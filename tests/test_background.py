@@ -1,0 +1,127 @@
+"""Extended light behind the samples, and the depth fit's table of a drifted lattice, against slow
+numpy versions of the same rules on a realistic crop (glow gradient, a reflection band, hot pixels,
+a drifted lattice)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from scipy.ndimage import median_filter
+
+from analysis.cache import Cache
+from analysis.calibration.cache import load_calibration
+from analysis.calibration.drift import LatticeDrift
+from analysis.formats.exposure import read_exposure
+from analysis.lightfield.background import BackgroundMap, estimate_background
+from analysis.lightfield.samples import background_and_noise
+from analysis.lightfield.table import shifted_table
+from analysis.order_statistics import median_of_5
+from analysis.pipeline.tables import FIT_TABLE_RIM_PX, drifted_fit_table, get_table
+from analysis.simulation.realism import Realism
+from analysis.simulation.scenario_files import write_scenario
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("background")
+    files = write_scenario(folder, "tilted-layer", 3, size=1024, realism=Realism.typical())
+    exposure = read_exposure(files.lfp[0])
+    calibration = load_calibration(files.calibration_dir, exposure.metadata, serial=exposure.serial)
+    # Out-of-focus light from a glint: smooth, lighting micro-images as the white image does.
+    rows, cols = np.mgrid[0:1024, 0:1024]
+    glint = 600.0 * np.exp(-((rows - 400.0) ** 2 + (cols - 600.0) ** 2) / (2 * 90.0 ** 2)) * calibration.devignetting
+    image = np.clip(exposure.image + np.rint(glint), 0, 4095).astype(np.uint16)
+    cache = Cache()
+    return image, calibration, get_table(calibration, cache), get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
+
+
+def _per_sample_reference(background: BackgroundMap, table) -> np.ndarray:
+    # Each sample: its lens's level, or the value of its pixel where that was taken one by one.
+    out = background.per_lens(table).astype(np.float32)[table.lens]
+    if background.pixels.size:
+        order = np.argsort(background.pixels)
+        pixels, values = background.pixels[order], background.values[order]
+        at = np.clip(np.searchsorted(pixels, table.pixel_index), 0, pixels.size - 1)
+        hit = pixels[at] == table.pixel_index
+        out[hit] = values[at[hit]]
+    return out
+
+
+def test_per_sample_background_is_the_lens_level_or_the_samples_own(case):
+    image, _, refocus, fit = case
+    noise = background_and_noise(image, refocus)[1]
+    background = estimate_background(image, fit, noise_dn=noise)
+    assert background.pixels.size > 1000, "the glint's light should be taken sample by sample"
+    for table in (fit, refocus):
+        got = background.per_sample(table)
+        assert got.dtype == np.float32 and np.array_equal(got, _per_sample_reference(background, table))
+    # Each lens's samples listed together, ascending, where `first` says.
+    n_i = background.level.shape[1]
+    cells = np.repeat(np.arange(background.first.size - 1), np.diff(background.first))
+    assert np.all(np.diff(cells * image.size + background.pixels) > 0)
+    j, i = np.divmod(cells, n_i)
+    lens_of = dict(zip(map(tuple, fit.lens_ij), range(fit.n_lenses)))
+    k = np.array([lens_of[(a + background.i0, b + background.j0)] for a, b in zip(i, j)])
+    assert np.array_equal(np.isin(background.pixels, fit.pixel_index[np.isin(fit.lens, k)]), np.ones(k.size, bool))
+    uniform = BackgroundMap.uniform(7.5).per_sample(refocus)
+    assert uniform.dtype == np.float32 and np.all(uniform == 7.5)
+
+
+def test_level_is_the_median_over_neighbouring_lenses(case):
+    image, _, refocus, fit = case
+    background = estimate_background(image, fit, noise_dn=background_and_noise(image, refocus)[1])
+    # The level map is its own 5 x 5 median's fixed point only where it is flat; compare instead with
+    # SciPy's median of the same float32 grid, which the OpenCV median must equal exactly.
+    grid = background.level.astype(np.float32).astype(np.float64)
+    assert np.array_equal(grid, background.level)  # float32 values, so the float32 median is exact
+    assert np.array_equal(cv2.medianBlur(grid.astype(np.float32), 5).astype(np.float64),
+                          median_filter(grid, size=5, mode="nearest"))
+
+
+def test_median_of_5_is_the_median():
+    rng = np.random.default_rng(3)
+    for _ in range(2000):
+        v = rng.integers(0, 5, 5).astype(np.float32)  # ties included
+        assert median_of_5(*v) == np.median(v)
+
+
+def test_drifted_table_reads_the_white_image_with_its_defects_repaired(case):
+    _, calibration, _, fit = case
+    assert len(calibration.defects) > 0
+    cx, cy = calibration.model.lattice.centre(fit.lens_ij[:, 0], fit.lens_ij[:, 1])
+    shift = np.column_stack(LatticeDrift((0.23, -0.11), 4e-5, 0.0, 0).displacement(cx, cy, calibration.model.lattice))
+    optics = calibration.model.optics
+    m_per_px = optics.pixel_pitch_m / optics.projection_factor
+    patched = shifted_table(fit, calibration.devignetting, shift, m_per_px=m_per_px, patch=calibration.repaired_defects)
+    copied = shifted_table(fit, calibration.devignetting_without_defects, shift, m_per_px=m_per_px)
+    for name in ("u_m", "v_m", "weight", "lens_xy_m"):
+        assert np.array_equal(getattr(patched, name), getattr(copied, name)), name
+    assert patched.weight.dtype == np.float32 and patched.u_m.dtype == np.float32
+    u_per_px = fit.aperture_radius_m / fit.micro_image_radius_px
+    assert np.allclose(patched.u_m - fit.u_m, (shift[:, 0] * u_per_px)[fit.lens], atol=1e-9)
+
+
+def test_the_cache_keeps_one_drifted_table_per_calibration(case):
+    _, calibration, _, _ = case
+    cache = Cache()
+    first = drifted_fit_table(calibration, cache, LatticeDrift((0.2, -0.1), 0.0, 0.01, 100))
+    assert drifted_fit_table(calibration, cache, LatticeDrift((0.2001, -0.1), 0.0, 0.01, 100)) is first  # same step
+    second = drifted_fit_table(calibration, cache, LatticeDrift((0.3, -0.1), 0.0, 0.01, 100))
+    assert second is not first
+    base = get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
+    assert [value[1] for _, value in cache.entries("drifted_table", base.uid)] == [second]
+    assert drifted_fit_table(calibration, cache, None) is base
+
+
+def test_released_pages_of_a_mapped_map_read_back_the_same(tmp_path):
+    from analysis.calibration.cache import release_pages
+
+    data = np.arange(1 << 20, dtype=np.float32)
+    np.save(tmp_path / "map.npy", data)
+    mapped = np.load(tmp_path / "map.npy", mmap_mode="r").view(np.ndarray)
+    assert float(mapped.sum(dtype=np.float64)) == float(data.sum(dtype=np.float64))
+    release_pages(mapped)
+    assert np.array_equal(mapped, data)  # read back from the file
+    release_pages(data)  # in memory: nothing to do
+    assert data[12] == 12.0
