@@ -306,28 +306,38 @@ def test_a_single_particle_is_not_split():
     assert len(split) == 1
 
 
+def _isolated_particles(size, spacing_pitches, blur_pitches, *, camera=None):
+    """Noise-free particles on a square grid ``spacing_pitches`` apart (no overlap), blurred over
+    ``blur_pitches`` (signed as ``c``: positive in front of focus), each a little off its lens centre:
+    model, fit table, lens-plane positions, ``c`` per particle, particles, raw image."""
+    model = CameraModel.from_metadata(simulated_camera_metadata(size=size))
+    optics = model.optics
+    table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
+    pitch = float(np.hypot(*table.basis_m[:, 0]))
+    n = blur_pitches.size
+    side = int(round(np.sqrt(n)))
+    half = 0.5 * spacing_pitches * (side - 1)
+    gx, gy = np.meshgrid(np.linspace(-half, half, side), np.linspace(-half, half, side))
+    s_hat = np.column_stack([gx.ravel(), gy.ravel()]) * pitch + np.linspace(0.0, 0.45, n)[:, None] * pitch
+    c = blur_pitches * optics.lens_pitch_m / optics.aperture_diameter_m
+    z = np.asarray(optics.z_of_alpha(1.0 / (1.0 - c)))
+    particles = Particles(s_hat[:, 0] * z / optics.exit_pupil_m, s_hat[:, 1] * z / optics.exit_pupil_m, z,
+                          np.full(n, 1800.0))
+    return model, table, s_hat, c, particles, render_exposure(model, particles, seed=5, noise=False, camera=camera)
+
+
 def test_depth_scale_of_blurred_particles_is_unbiased():
     """The depth of a particle blurred over a few pitches comes from the size of the small patch
     each lens holds (the lens cell seen through the aperture, scaled by 1/c): a pixel model that
     spreads light wider or narrower than the sensor does scales every such depth. On noise-free
     particles, evenly spaced pixel points put them 1.1 % too far from focus."""
     from analysis.depth.refine import FINE_GRID
-    from analysis.simulation.scenarios import Particles
     from analysis.simulation.render import particle_truth
 
-    model = CameraModel.from_metadata(simulated_camera_metadata(size=640))
-    optics = model.optics
-    table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
-    pitch = float(np.hypot(*table.basis_m[:, 0]))
-    gx, gy = np.meshgrid(np.arange(-18.0, 19.0, 12.0), np.arange(-18.0, 19.0, 12.0))  # pitches: no overlap
-    s_hat = np.column_stack([gx.ravel(), gy.ravel()]) * pitch + np.linspace(0.0, 0.45, 16)[:, None] * pitch
     blur = np.linspace(2.0, 3.5, 16) * np.tile([1.0, -1.0], 8)  # signed: behind and in front of focus
-    c = blur * optics.lens_pitch_m / optics.aperture_diameter_m
-    z = np.asarray(optics.z_of_alpha(1.0 / (1.0 - c)))
-    particles = Particles(s_hat[:, 0] * z / optics.exit_pupil_m, s_hat[:, 1] * z / optics.exit_pupil_m, z,
-                          np.full(16, 1800.0))
+    model, table, s_hat, c, particles, image = _isolated_particles(640, 12.0, blur)
+    optics = model.optics
     assert np.allclose(particle_truth(model, particles).blur_pitches, np.abs(blur), rtol=1e-3)
-    image = render_exposure(model, particles, seed=5, noise=False)
     fit = fit_rays(image, table, s_hat[:, 0], s_hat[:, 1], 1.0 / (1.0 - c), background=0.0,
                    aperture_per_lens_plane=aperture_per_lens_plane(optics), fine=FINE_GRID)  # as the pipeline does
     ratio = (1.0 - 1.0 / fit.alpha) / c
@@ -411,18 +421,9 @@ def test_a_blur_wider_than_the_ideal_does_not_pull_blurred_particles_toward_focu
     from analysis.simulation.camera_effects import CameraEffects
     from analysis.simulation.realism import Realism
 
-    model = CameraModel.from_metadata(simulated_camera_metadata(size=1280))
-    optics = model.optics
-    table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
-    pitch = float(np.hypot(*table.basis_m[:, 0]))
-    gx, gy = np.meshgrid(np.arange(-30.0, 31.0, 30.0), np.arange(-30.0, 31.0, 30.0))  # pitches: no overlap
-    s_hat = np.column_stack([gx.ravel(), gy.ravel()]) * pitch + np.linspace(0.0, 0.45, 9)[:, None] * pitch
-    c = np.linspace(9.0, 12.0, 9) * optics.lens_pitch_m / optics.aperture_diameter_m
-    z = np.asarray(optics.z_of_alpha(1.0 / (1.0 - c)))
-    particles = Particles(s_hat[:, 0] * z / optics.exit_pupil_m, s_hat[:, 1] * z / optics.exit_pupil_m, z,
-                          np.full(9, 1800.0))
     camera = CameraEffects.build(Realism(blur_px=0.8), serial="A202160042")
-    image = render_exposure(model, particles, seed=5, noise=False, camera=camera)
+    model, table, s_hat, c, _, image = _isolated_particles(1280, 30.0, np.linspace(9.0, 12.0, 9), camera=camera)
+    optics = model.optics
     centres = PIPELINE_COARSE._replace(lateral_pitches=COARSE_LATERAL_PITCHES)
     assert blur_aware(centres, 0.5) == centres  # the ideal optics' blur: pixel centres
     bias = {}
