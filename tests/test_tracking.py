@@ -89,6 +89,24 @@ def test_a_particle_missed_in_one_or_two_shots_keeps_its_trajectory(ball_run) ->
     assert all(len(ids_of(broken, p)) == 2 for p in (10, 40, 77))
 
 
+def test_after_a_pause_in_shooting_the_search_range_stays_bounded() -> None:
+    # A still cluster; 200 s after two shots a third, with every particle a little off, but one
+    # gone and another 1 mm (1.5 NN) outward of it, near no one: a different particle, not a step.
+    rng = np.random.default_rng(8)
+    p = make_scenario("ball", 8, centre_z_mm=57.4).particles
+    xyz = np.stack([p.x_mm, p.y_mm, p.z_mm], axis=1)
+    gone = int(np.argmax(np.linalg.norm(xyz - xyz.mean(0), axis=1)))  # an outermost particle
+    outward = (xyz[gone] - xyz.mean(0)) / np.linalg.norm(xyz[gone] - xyz.mean(0))
+    later = np.delete(xyz + rng.normal(0, 0.005, xyz.shape), gone, axis=0)
+    later = np.vstack([later, xyz[gone] + 1.0 * outward])
+    linker = Linker()
+    for k, (t, s) in enumerate([(0.0, xyz), (1.0, xyz), (201.0, later)]):
+        step = linker.add(k, t, {"X": s[:, 0], "Y": s[:, 1], "Z": s[:, 2]})
+    # Everyone else goes on; the stranger starts anew (the range is what two missed shots allow).
+    assert step.linked == len(later) - 1 and step.particle[-1] == 150
+    assert step.search_range_mm < 0.1
+
+
 def _near_focus_table(shots, *, seed: int) -> pd.DataFrame:
     """A ball at the focus: particles blurred under one lens pitch get a depth anywhere in the
     range their pixels allow, as the pipeline's open depths do, plus alpha and blur_pitches."""

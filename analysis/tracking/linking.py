@@ -13,7 +13,9 @@ frames) and links each new shot to them:
    typical one gets that extra room, and one whose light fell in one micro-lens (depth open over
    a known interval, :mod:`analysis.tracking.uncertainty`) is compared by the gap between the
    intervals: its depth may sit anywhere in it without costing a jump. A trajectory last seen
-   ``g`` shot intervals ago gets ``g`` times the step spread.
+   ``g`` shot intervals ago gets ``g`` times the step spread, ``g`` at most ``memory + 1``: after a
+   pause in shooting the range stays what ``memory`` missed shots allow (a particle that moved
+   farther starts a new trajectory rather than taking a far-off one's id).
 3. **Search range** from the data: ``gate_sigma`` step spreads, at most ``max_step_nn`` of the mean
    nearest-neighbour distance of the shot.
 4. **Assignment.** The links of least total squared distance, one-to-one, each below the gate
@@ -245,10 +247,14 @@ class Linker:
 
     def _variances(self, old: _Active, rows: np.ndarray, new_errors: DepthErrors, cols: np.ndarray,
                    t_s: float) -> np.ndarray:
-        gap = np.maximum((t_s - old.t[rows]) / self.interval_s, 1.0)
+        gap = self._gaps(old.t[rows], t_s)
         var = (np.asarray(self.step_mm)[None, :] * gap[:, None]) ** 2
         var[:, 2] += old.errors.extra_sigma_mm[rows] ** 2 + new_errors.extra_sigma_mm[cols] ** 2
         return var
+
+    def _gaps(self, t_old: np.ndarray, t_s: float) -> np.ndarray:
+        """Shot intervals since each trajectory was seen, between 1 and ``memory + 1``."""
+        return np.clip((t_s - t_old) / self.interval_s, 1.0, self.params.memory + 1.0)
 
     def _rescue(self, old: _Active, rows: np.ndarray, xyz: np.ndarray, cols: np.ndarray, errors: DepthErrors,
                 t_s: float, motion: RigidMotion | None) -> tuple[np.ndarray, np.ndarray]:
@@ -269,7 +275,7 @@ class Linker:
         gate = p.gate_sigma if gate is None else gate
         predicted = motion.predict(old.xyz, old.t, t_s) if (p.predict and motion is not None) else old.xyz
         shift_z = predicted[:, 2] - old.xyz[:, 2]
-        gap = np.maximum((t_s - old.t) / self.interval_s, 1.0)
+        gap = self._gaps(old.t, t_s)
         spread = float(np.max(self.step_mm))
         reach = np.minimum(gate * spread * gap, p.max_step_nn * self.nn_mm * gap)
         open_width = (old.errors.z_high - old.errors.z_low) + float(np.max(errors.z_high - errors.z_low, initial=0.0))
