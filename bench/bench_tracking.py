@@ -1,12 +1,14 @@
 """Trajectories from `plenodust track` on simulated runs, against the truth; linking speed.
 
     python bench/bench_tracking.py run [--shots 100] [--size 3280] [--realism] [--seed 1] [--work DIR]
+                                       [--temperature-ev 0.004]
     python bench/bench_tracking.py speed [--particles 1000] [--shots 30]
 
 ``run``: a ball of 150 particles 2.6 mm in front of focus (``--centre-z 57.4``) moving as
 ``analysis.simulation.dynamics.Motion()`` says (rotation, drift, Langevin at 0.004 eV, shell hops),
-one shot a second; simulated (ideal camera, or ``--realism``), processed and linked as
-``plenodust track`` does (``--alpha-min 0.999 --alpha-max 1.026``), then scored: links right
+one shot a second (``--temperature-ev``: another temperature; steps scale with its square root,
+the position noise's share of the apparent temperature inversely); simulated (ideal camera, or
+``--realism``), processed and linked as ``plenodust track`` does (``--alpha-min 0.999 --alpha-max 1.026``), then scored: links right
 (target >= 99 %), missed shots bridged, trajectories per true particle, velocity errors, the
 position noise the run measured against the true position errors, and the temperature with
 the noise taken out against the truth (target within 10 %). trackpy's ``link`` on the same
@@ -51,7 +53,7 @@ def run(args: argparse.Namespace) -> None:
 
     work = Path(args.work or tempfile.mkdtemp(prefix="bench-tracking-"))
     sim = work / "sim"
-    motion = Motion()
+    motion = Motion(temperature_ev=args.temperature_ev)
     if not (sim / "scenario.json").exists():
         start = time.perf_counter()
         write_scenario(sim, "ball", args.seed, count=args.shots, size=args.size, centre_z_mm=57.4,
@@ -177,6 +179,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--realism", action="store_true")
     p.add_argument("--work", type=Path, default=None)
+    p.add_argument("--temperature-ev", type=float, default=Motion().temperature_ev)
     p.set_defaults(func=run)
     p = sub.add_parser("speed")
     p.add_argument("--particles", type=int, default=1000)
