@@ -402,6 +402,13 @@ class Linker:
         _, first = np.unique(every.ids, return_index=True)
         last_frame = int(recent[-1][0]) if recent else None
         latest = every.take(first)
+        rest = every.take(np.setdiff1d(np.arange(len(every.ids)), first))  # each one's observation before
+        ids, second = np.unique(rest.ids, return_index=True)
+        where = np.searchsorted(ids, latest.ids)
+        known = (where < ids.size) & (ids[np.minimum(where, ids.size - 1)] == latest.ids) if ids.size else \
+            np.zeros(len(latest.ids), bool)
+        latest.prev_xyz[known] = rest.xyz[second[where[known]]]
+        latest.prev_t[known] = rest.t[second[where[known]]]
         linker.active = latest.take(latest.frame >= last_frame - linker.params.memory)
         linker.last_frame = last_frame
         times = sorted({float(r[1]) for r in recent})
@@ -422,7 +429,9 @@ class Linker:
                                                   "omega_rad_s": m.omega_rad_s.tolist()},
                 "active": {"ids": a.ids.tolist(), "xyz": a.xyz.tolist(), "t": a.t.tolist(), "frame": a.frame.tolist(),
                            "extra": a.errors.extra_sigma_mm.tolist(), "z_low": a.errors.z_low.tolist(),
-                           "z_high": a.errors.z_high.tolist()}}
+                           "z_high": a.errors.z_high.tolist(),
+                           "prev_xyz": np.where(np.isfinite(a.prev_xyz), a.prev_xyz, None).tolist(),
+                           "prev_t": np.where(np.isfinite(a.prev_t), a.prev_t, None).tolist()}}
 
     @classmethod
     def from_state(cls, state: Mapping[str, Any]) -> Linker:
@@ -442,5 +451,7 @@ class Linker:
         linker.active = _Active(np.asarray(a["ids"], np.int64), np.asarray(a["xyz"], float).reshape(-1, 3),
                                 np.asarray(a["t"], float), np.asarray(a["frame"], np.int64),
                                 DepthErrors(np.asarray(a["extra"], float), np.asarray(a["z_low"], float),
-                                            np.asarray(a["z_high"], float)))
+                                            np.asarray(a["z_high"], float)),
+                                np.asarray(a.get("prev_xyz", []), float).reshape(-1, 3),  # None -> NaN
+                                np.asarray(a.get("prev_t", []), float))
         return linker
