@@ -219,6 +219,17 @@ def test_temperature_with_the_position_noise_taken_out(ball_run) -> None:
     assert np.nanmedian(frame["vX"]) == pytest.approx(motion.drift_mm_per_s[0], abs=0.01)
 
 
+def test_the_newest_shot_has_no_temperature_until_its_velocities_are_central(ball_run) -> None:
+    # As the service sees a run being taken: the last shot's velocities are one-sided, so four
+    # times the position noise would come off them (a value that can go negative); it waits.
+    shots, _, _ = ball_run
+    linked = link(shots_table(shots[:12], seed=10))
+    newest = summarize(linked, frames=[10, 11], two_sided_only=True).table
+    assert np.isnan(newest["T_eV"][1]) and newest["count"][1] == 150
+    assert np.isfinite(newest["T_eV"][0]) and newest["with_velocity"][0] >= 140
+    assert np.isfinite(summarize(linked, frames=[11]).table["T_eV"][0])  # one-sided, as before
+
+
 def test_shells_and_pair_correlation_of_the_ball(ball_run) -> None:
     shots, _, _ = ball_run
     rng = np.random.default_rng(6)
