@@ -301,8 +301,9 @@ class Linker:
     def _before_last(self, old: _Active, rows: np.ndarray, xyz: np.ndarray, cols: np.ndarray, errors: DepthErrors,
                      t_s: float, motion: RigidMotion | None) -> tuple[np.ndarray, np.ndarray]:
         """Trajectories left unlinked try again from the position before their last, among the
-        particles left unlinked: one detection far off (a depth outlier) is passed over instead of
-        ending the trajectory (its particle, found again, would start a new one)."""
+        particles left unlinked, where each is the other's only candidate: one detection far off (a
+        depth outlier) is passed over instead of ending the trajectory (its particle, found again,
+        would start a new one)."""
         left_old = np.setdiff1d(np.arange(len(old.ids)), rows)
         left_old = left_old[np.isfinite(old.prev_t[left_old]) & ~old.errors.open[left_old]]
         left_new = np.setdiff1d(np.arange(len(xyz)), cols)
@@ -311,7 +312,7 @@ class Linker:
         z = old.prev_xyz[left_old, 2]
         earlier = _Active(old.ids[left_old], old.prev_xyz[left_old], old.prev_t[left_old], old.frame[left_old],
                           DepthErrors(old.errors.extra_sigma_mm[left_old], z, z))
-        r, c, _ = self._link_once(earlier, xyz[left_new], errors.take(left_new), t_s, motion)
+        r, c, _ = self._link_once(earlier, xyz[left_new], errors.take(left_new), t_s, motion, unique=True)
         return np.r_[rows, left_old[r]], np.r_[cols, left_new[c]]
 
     def _candidates(self, old: _Active, xyz: np.ndarray, errors: DepthErrors, t_s: float,
