@@ -17,10 +17,11 @@ from analysis.simulation.camera import simulated_camera_metadata
 from analysis.simulation.dynamics import Motion, MovingCluster, simulate_motion
 from analysis.simulation.render import particle_truth
 from analysis.simulation.scenarios import make_scenario
-from analysis.simulation.track_scoring import truth_temperature_ev
+from analysis.simulation.track_scoring import truth_temperature_axes_ev, truth_temperature_ev
 from analysis.tracking.linking import LinkParams, Linker
 from analysis.tracking.structure import pair_correlation, shells
 from analysis.tracking.summary import summarize
+from analysis.tracking.temperature import position_noise
 from analysis.tracking.trajectories import link
 
 NOISE_MM = np.array([0.005, 0.005, 0.03])
@@ -202,8 +203,10 @@ def test_temperature_with_the_position_noise_taken_out(ball_run) -> None:
                                      "vZ": s.velocity_mm_s[:, 2]}) for k, s in enumerate(shots)])
     true_t = truth_temperature_ev(truth)
     summary = summarize(linked)
-    # The noise is measured from the run itself...
-    np.testing.assert_allclose(summary.noise.sigma_mm, NOISE_MM, rtol=0.1, atol=0.002)
+    # The noise is measured from the run itself (laterally to the few um the fit resolves beside
+    # the motion's bend over lags 2-7)...
+    np.testing.assert_allclose(summary.noise.sigma_mm, NOISE_MM, rtol=0.1, atol=0.005)
+    assert abs(summary.noise.sigma_mm[2] / NOISE_MM[2] - 1) < 0.1
     # ... and taken out: the temperature within 10 % of the truth's, per axis too.
     t, err = summary.temperature_ev()
     assert abs(t / true_t - 1) < 0.1 and err < 0.05 * t
@@ -217,6 +220,35 @@ def test_temperature_with_the_position_noise_taken_out(ball_run) -> None:
     frame = summary.to_dataframe()
     assert np.nanmedian(frame["omegaY"]) == pytest.approx(np.radians(motion.rotation_deg_per_s), rel=0.1)
     assert np.nanmedian(frame["vX"]) == pytest.approx(motion.drift_mm_per_s[0], abs=0.01)
+
+
+def test_heavy_tailed_correlated_depth_noise_is_taken_out_at_the_velocities_lag(ball_run) -> None:
+    # Depth errors as the realistic pipeline's are: one in ten five times wider, and a part that
+    # persists from shot to shot (correlation 0.8 a shot). Displacements one shot apart then show
+    # less of it than the velocities (two shots apart) carry.
+    shots, _, _ = ball_run
+    truth = pd.concat([pd.DataFrame({"frame": k, "t": s.t_s, "particle": np.arange(len(s.xyz_mm)),
+                                     "X": s.xyz_mm[:, 0], "Y": s.xyz_mm[:, 1], "Z": s.xyz_mm[:, 2],
+                                     "vX": s.velocity_mm_s[:, 0], "vY": s.velocity_mm_s[:, 1],
+                                     "vZ": s.velocity_mm_s[:, 2]}) for k, s in enumerate(shots)])
+    true_z = truth_temperature_axes_ev(truth)[2]
+    rng = np.random.default_rng(12)
+    table = shots_table(shots, seed=12, noise=np.array([0.002, 0.002, 0.0]))
+    n, count = len(shots[0].xyz_mm), len(shots)
+    slow = np.zeros((count, n))
+    slow[0] = rng.normal(0, 0.025, n)
+    for k in range(1, count):
+        slow[k] = 0.8 * slow[k - 1] + 0.6 * rng.normal(0, 0.025, n)
+    fast = rng.normal(0, 0.02, (count, n)) * np.where(rng.random((count, n)) < 0.1, 5.0, 1.0)
+    table["Z"] += (slow + fast)[table["frame"].to_numpy(), table["truth"].to_numpy()]
+    linked = link(table)
+    summary = summarize(linked)
+    assert abs(np.nanmean(summary.table["T_Z_eV"]) / true_z - 1) < 0.1
+    # Fitted through lag 1 (as before), the noise comes out too small and the depth too hot.
+    args = (linked["particle"].to_numpy(), linked["frame"].to_numpy(), linked["t"].to_numpy(float),
+            linked[["X", "Y", "Z"]].to_numpy(float))
+    through_lag1 = summarize(linked, noise=position_noise(*args, lags=4, first_lag=1))
+    assert np.nanmean(through_lag1.table["T_Z_eV"]) / true_z > 1.1
 
 
 def test_the_newest_shot_has_no_temperature_until_its_velocities_are_central(ball_run) -> None:

@@ -56,7 +56,7 @@ class RunSummary:
         return float(t.mean()), float(t.std(ddof=1) / math.sqrt(t.size)) if t.size > 1 else math.nan
 
 
-def summarize(linked: pd.DataFrame, *, mass_kg: float | None = None, lags: int = 4, g_bins: int = 40,
+def summarize(linked: pd.DataFrame, *, mass_kg: float | None = None, lags: int = 7, g_bins: int = 40,
               frames: list[int] | None = None, noise: NoiseEstimate | None = None,
               two_sided_only: bool = False) -> RunSummary:
     """Describe each shot of a linked run (see the module docstring).
@@ -69,7 +69,7 @@ def summarize(linked: pd.DataFrame, *, mass_kg: float | None = None, lags: int =
     mass_kg : float, optional
         Particle mass; default the paper's MF particles (9.16 um, 1510 kg/m^3).
     lags : int
-        Lags (frames) of the noise fit.
+        Largest lag (frames) of the noise fit.
     g_bins : int
         Bins of g(r).
     frames : list of int, optional
