@@ -11,7 +11,8 @@ bridges it), one still queued or running stops it until its result comes. Linkin
   (trajectory id) and ``t`` (s since the run's first linked shot), and ``vX, vY, vZ`` of every
   frame whose velocities this shot changes (the last ``memory + 2``);
 - stores the structure of the shot before it (whose velocities are now central) and of this one
-  (provisional) in the ``frame_summaries`` table (:mod:`analysis.tracking.summary`), with the
+  (provisional: count and shells, no temperature until its velocities are central) in the
+  ``frame_summaries`` table (:mod:`analysis.tracking.summary`), with the
   position noise measured over the last :data:`NOISE_FRAMES` frames.
 
 Everything it touches is a fixed number of recent frames, so a shot costs the same at frame 10
@@ -171,7 +172,8 @@ class RunTracker:
             return
         noise = position_noise(linked["particle"].to_numpy(), linked["frame"].to_numpy(), linked["t"].to_numpy(),
                                linked[["X", "Y", "Z"]].to_numpy(float), blocks=4)
-        summary = summarize(window, mass_kg=self.mass_kg, frames=frames, noise=noise)
+        # The newest shot's velocities are one-sided: its temperature waits for the next shot.
+        summary = summarize(window, mass_kg=self.mass_kg, frames=frames, noise=noise, two_sided_only=True)
         rows = []
         for k in range(len(summary.table["frame"])):
             data = {name: _plain(values[k]) for name, values in summary.table.items()}

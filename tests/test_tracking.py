@@ -17,10 +17,11 @@ from analysis.simulation.camera import simulated_camera_metadata
 from analysis.simulation.dynamics import Motion, MovingCluster, simulate_motion
 from analysis.simulation.render import particle_truth
 from analysis.simulation.scenarios import make_scenario
-from analysis.simulation.track_scoring import truth_temperature_ev
+from analysis.simulation.track_scoring import truth_temperature_axes_ev, truth_temperature_ev
 from analysis.tracking.linking import LinkParams, Linker
 from analysis.tracking.structure import pair_correlation, shells
 from analysis.tracking.summary import summarize
+from analysis.tracking.temperature import position_noise
 from analysis.tracking.trajectories import link
 
 NOISE_MM = np.array([0.005, 0.005, 0.03])
@@ -89,6 +90,42 @@ def test_a_particle_missed_in_one_or_two_shots_keeps_its_trajectory(ball_run) ->
     assert all(len(ids_of(broken, p)) == 2 for p in (10, 40, 77))
 
 
+def test_one_detection_far_off_in_depth_does_not_end_its_trajectory(ball_run) -> None:
+    # As the realistic pipeline does now and then: a particle found 0.35 mm (half an NN, 7 depth
+    # step spreads) off in depth in one shot, then where it is again.
+    shots, _, _ = ball_run
+    table = shots_table(shots[:20], seed=9)
+    off = {(8, 10), (11, 60), (15, 120)}
+    for frame, particle in off:
+        table.loc[(table["frame"] == frame) & (table["truth"] == particle), "Z"] += 0.35
+    linked = link(table)
+    assert all(len(ids_of(linked, p)) == 1 for _, p in off)
+    assert links_right(linked)[0] == 1.0
+    # Continued only from its last position, a trajectory that took the far-off detection ends
+    # there when the step back is beyond the gate (here one of the three: the particle's own
+    # depth motion adds to one of the two steps and takes from the other).
+    broken = link(table, LinkParams(from_before_last=False))
+    assert sum(len(ids_of(broken, p)) == 2 for _, p in off) >= 1
+
+
+def test_after_a_pause_in_shooting_the_search_range_stays_bounded() -> None:
+    # A still cluster; 200 s after two shots a third, with every particle a little off, but one
+    # gone and another 1 mm (1.5 NN) outward of it, near no one: a different particle, not a step.
+    rng = np.random.default_rng(8)
+    p = make_scenario("ball", 8, centre_z_mm=57.4).particles
+    xyz = np.stack([p.x_mm, p.y_mm, p.z_mm], axis=1)
+    gone = int(np.argmax(np.linalg.norm(xyz - xyz.mean(0), axis=1)))  # an outermost particle
+    outward = (xyz[gone] - xyz.mean(0)) / np.linalg.norm(xyz[gone] - xyz.mean(0))
+    later = np.delete(xyz + rng.normal(0, 0.005, xyz.shape), gone, axis=0)
+    later = np.vstack([later, xyz[gone] + 1.0 * outward])
+    linker = Linker()
+    for k, (t, s) in enumerate([(0.0, xyz), (1.0, xyz), (201.0, later)]):
+        step = linker.add(k, t, {"X": s[:, 0], "Y": s[:, 1], "Z": s[:, 2]})
+    # Everyone else goes on; the stranger starts anew (the range is what two missed shots allow).
+    assert step.linked == len(later) - 1 and step.particle[-1] == 150
+    assert step.search_range_mm < 0.1
+
+
 def _near_focus_table(shots, *, seed: int) -> pd.DataFrame:
     """A ball at the focus: particles blurred under one lens pitch get a depth anywhere in the
     range their pixels allow, as the pipeline's open depths do, plus alpha and blur_pitches."""
@@ -132,7 +169,7 @@ def test_a_near_focus_particle_whose_depth_is_open_is_not_linked_as_if_it_jumped
     opened = linked[linked["blur_pitches"] < 1.0]
     assert opened["vZ"].isna().mean() > 0.8 and opened["vX"].notna().mean() > 0.9
     # Weighed as settled depths, the same jumps break trajectories or swap them.
-    naive = link(table, LinkParams(open_blur_pitches=0.0))
+    naive = link(table, LinkParams(open_blur_pitches=0.0, from_before_last=False))
     assert np.mean([len(ids_of(naive, p)) == 1 for p in wanderers]) < 0.5 and naive["particle"].nunique() > 170
 
 
@@ -166,8 +203,10 @@ def test_temperature_with_the_position_noise_taken_out(ball_run) -> None:
                                      "vZ": s.velocity_mm_s[:, 2]}) for k, s in enumerate(shots)])
     true_t = truth_temperature_ev(truth)
     summary = summarize(linked)
-    # The noise is measured from the run itself...
-    np.testing.assert_allclose(summary.noise.sigma_mm, NOISE_MM, rtol=0.1, atol=0.002)
+    # The noise is measured from the run itself (laterally to the few um the fit resolves beside
+    # the motion's bend over lags 2-7)...
+    np.testing.assert_allclose(summary.noise.sigma_mm, NOISE_MM, rtol=0.1, atol=0.005)
+    assert abs(summary.noise.sigma_mm[2] / NOISE_MM[2] - 1) < 0.1
     # ... and taken out: the temperature within 10 % of the truth's, per axis too.
     t, err = summary.temperature_ev()
     assert abs(t / true_t - 1) < 0.1 and err < 0.05 * t
@@ -181,6 +220,46 @@ def test_temperature_with_the_position_noise_taken_out(ball_run) -> None:
     frame = summary.to_dataframe()
     assert np.nanmedian(frame["omegaY"]) == pytest.approx(np.radians(motion.rotation_deg_per_s), rel=0.1)
     assert np.nanmedian(frame["vX"]) == pytest.approx(motion.drift_mm_per_s[0], abs=0.01)
+
+
+def test_heavy_tailed_correlated_depth_noise_is_taken_out_at_the_velocities_lag(ball_run) -> None:
+    # Depth errors as the realistic pipeline's are: one in ten five times wider, and a part that
+    # persists from shot to shot (correlation 0.8 a shot). Displacements one shot apart then show
+    # less of it than the velocities (two shots apart) carry.
+    shots, _, _ = ball_run
+    truth = pd.concat([pd.DataFrame({"frame": k, "t": s.t_s, "particle": np.arange(len(s.xyz_mm)),
+                                     "X": s.xyz_mm[:, 0], "Y": s.xyz_mm[:, 1], "Z": s.xyz_mm[:, 2],
+                                     "vX": s.velocity_mm_s[:, 0], "vY": s.velocity_mm_s[:, 1],
+                                     "vZ": s.velocity_mm_s[:, 2]}) for k, s in enumerate(shots)])
+    true_z = truth_temperature_axes_ev(truth)[2]
+    rng = np.random.default_rng(12)
+    table = shots_table(shots, seed=12, noise=np.array([0.002, 0.002, 0.0]))
+    n, count = len(shots[0].xyz_mm), len(shots)
+    slow = np.zeros((count, n))
+    slow[0] = rng.normal(0, 0.025, n)
+    for k in range(1, count):
+        slow[k] = 0.8 * slow[k - 1] + 0.6 * rng.normal(0, 0.025, n)
+    fast = rng.normal(0, 0.02, (count, n)) * np.where(rng.random((count, n)) < 0.1, 5.0, 1.0)
+    table["Z"] += (slow + fast)[table["frame"].to_numpy(), table["truth"].to_numpy()]
+    linked = link(table)
+    summary = summarize(linked)
+    assert abs(np.nanmean(summary.table["T_Z_eV"]) / true_z - 1) < 0.1
+    # Fitted through lag 1 (as before), the noise comes out too small and the depth too hot.
+    args = (linked["particle"].to_numpy(), linked["frame"].to_numpy(), linked["t"].to_numpy(float),
+            linked[["X", "Y", "Z"]].to_numpy(float))
+    through_lag1 = summarize(linked, noise=position_noise(*args, lags=4, first_lag=1))
+    assert np.nanmean(through_lag1.table["T_Z_eV"]) / true_z > 1.1
+
+
+def test_the_newest_shot_has_no_temperature_until_its_velocities_are_central(ball_run) -> None:
+    # As the service sees a run being taken: the last shot's velocities are one-sided, so four
+    # times the position noise would come off them (a value that can go negative); it waits.
+    shots, _, _ = ball_run
+    linked = link(shots_table(shots[:12], seed=10))
+    newest = summarize(linked, frames=[10, 11], two_sided_only=True).table
+    assert np.isnan(newest["T_eV"][1]) and newest["count"][1] == 150
+    assert np.isfinite(newest["T_eV"][0]) and newest["with_velocity"][0] >= 140
+    assert np.isfinite(summarize(linked, frames=[11]).table["T_eV"][0])  # one-sided, as before
 
 
 def test_shells_and_pair_correlation_of_the_ball(ball_run) -> None:

@@ -13,7 +13,9 @@ frames) and links each new shot to them:
    typical one gets that extra room, and one whose light fell in one micro-lens (depth open over
    a known interval, :mod:`analysis.tracking.uncertainty`) is compared by the gap between the
    intervals: its depth may sit anywhere in it without costing a jump. A trajectory last seen
-   ``g`` shot intervals ago gets ``g`` times the step spread.
+   ``g`` shot intervals ago gets ``g`` times the step spread, ``g`` at most ``memory + 1``: after a
+   pause in shooting the range stays what ``memory`` missed shots allow (a particle that moved
+   farther starts a new trajectory rather than taking a far-off one's id).
 3. **Search range** from the data: ``gate_sigma`` step spreads, at most ``max_step_nn`` of the mean
    nearest-neighbour distance of the shot.
 4. **Assignment.** The links of least total squared distance, one-to-one, each below the gate
@@ -68,6 +70,9 @@ class LinkParams:
         After the assignment, a trajectory and a particle both left unlinked are linked up to this
         many step spreads when each is the other's only candidate (a particle hopping between
         shells steps farther than thermal motion does). 0 turns it off.
+    from_before_last : bool
+        A trajectory may also continue from the position before its last one, so one detection
+        far off (most often in depth) is passed over rather than ending the trajectory.
     """
 
     memory: int = 2
@@ -79,6 +84,7 @@ class LinkParams:
     initial_step_nn: float = 0.25
     min_step_nn: float = 0.005
     rescue_gate_sigma: float = 8.0
+    from_before_last: bool = True
 
     def __post_init__(self) -> None:
         if self.memory < 0 or self.gate_sigma <= 0 or self.max_step_nn <= 0:
@@ -117,13 +123,21 @@ class LinkStep:
 
 @dataclass
 class _Active:
-    """Trajectories that may still continue: last id, position, time, frame and depth interval."""
+    """Trajectories that may still continue: last id, position, time, frame and depth interval, and
+    the position and time of the observation before the last (NaN where there is none)."""
 
     ids: np.ndarray
     xyz: np.ndarray
     t: np.ndarray
     frame: np.ndarray
     errors: DepthErrors
+    prev_xyz: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
+    prev_t: np.ndarray = field(default_factory=lambda: np.empty(0))
+
+    def __post_init__(self) -> None:
+        if len(self.prev_t) != len(self.ids):  # none known (a restart, an old state)
+            self.prev_xyz = np.full((len(self.ids), 3), np.nan)
+            self.prev_t = np.full(len(self.ids), np.nan)
 
     @classmethod
     def empty(cls) -> _Active:
@@ -131,14 +145,16 @@ class _Active:
         return cls(np.empty(0, np.int64), np.empty((0, 3)), e, np.empty(0, np.int64), DepthErrors.none(e))
 
     def take(self, index: np.ndarray) -> _Active:
-        return _Active(self.ids[index], self.xyz[index], self.t[index], self.frame[index], self.errors.take(index))
+        return _Active(self.ids[index], self.xyz[index], self.t[index], self.frame[index], self.errors.take(index),
+                       self.prev_xyz[index], self.prev_t[index])
 
     @staticmethod
     def join(a: _Active, b: _Active) -> _Active:
         e = DepthErrors(*(np.concatenate([getattr(a.errors, n), getattr(b.errors, n)])
                           for n in ("extra_sigma_mm", "z_low", "z_high")))
         return _Active(np.concatenate([a.ids, b.ids]), np.vstack([a.xyz, b.xyz]), np.concatenate([a.t, b.t]),
-                       np.concatenate([a.frame, b.frame]), e)
+                       np.concatenate([a.frame, b.frame]), e, np.vstack([a.prev_xyz, b.prev_xyz]),
+                       np.concatenate([a.prev_t, b.prev_t]))
 
 
 class Linker:
@@ -222,6 +238,7 @@ class Linker:
                     motion = self._refit(old, rows, xyz[usable], cols, t_s, errors.take(usable), first=passes == 3)
             self.motion = motion
             step.search_range_mm = radius
+            rows, cols = self._before_last(old, rows, xyz[usable], cols, errors.take(usable), t_s, motion)
             rows, cols = self._rescue(old, rows, xyz[usable], cols, errors.take(usable), t_s, motion)
             cols = usable[cols]
         step.step_mm = np.array(self.step_mm) if self.step_mm is not None else step.step_mm
@@ -233,8 +250,10 @@ class Linker:
         self.next_id += int(fresh.size)
         # Trajectories seen now, and those still within the memory.
         seen = np.r_[cols, fresh]
+        prev_xyz = np.vstack([old.xyz[rows], np.full((fresh.size, 3), np.nan)])
+        prev_t = np.r_[old.t[rows], np.full(fresh.size, np.nan)]
         now = _Active(particle[seen], xyz[seen], np.full(seen.size, float(t_s)), np.full(seen.size, frame, np.int64),
-                      errors.take(seen))
+                      errors.take(seen), prev_xyz, prev_t)
         waiting = np.setdiff1d(np.arange(len(old.ids)), rows)
         waiting = waiting[old.frame[waiting] >= frame - self.params.memory]
         self.active = _Active.join(now, old.take(waiting))
@@ -245,10 +264,14 @@ class Linker:
 
     def _variances(self, old: _Active, rows: np.ndarray, new_errors: DepthErrors, cols: np.ndarray,
                    t_s: float) -> np.ndarray:
-        gap = np.maximum((t_s - old.t[rows]) / self.interval_s, 1.0)
+        gap = self._gaps(old.t[rows], t_s)
         var = (np.asarray(self.step_mm)[None, :] * gap[:, None]) ** 2
         var[:, 2] += old.errors.extra_sigma_mm[rows] ** 2 + new_errors.extra_sigma_mm[cols] ** 2
         return var
+
+    def _gaps(self, t_old: np.ndarray, t_s: float) -> np.ndarray:
+        """Shot intervals since each trajectory was seen, between 1 and ``memory + 1``."""
+        return np.clip((t_s - t_old) / self.interval_s, 1.0, self.params.memory + 1.0)
 
     def _rescue(self, old: _Active, rows: np.ndarray, xyz: np.ndarray, cols: np.ndarray, errors: DepthErrors,
                 t_s: float, motion: RigidMotion | None) -> tuple[np.ndarray, np.ndarray]:
@@ -265,11 +288,40 @@ class Linker:
     def _link_once(self, old: _Active, xyz: np.ndarray, errors: DepthErrors, t_s: float,
                    motion: RigidMotion | None, *, gate: float | None = None,
                    unique: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+        gate = self.params.gate_sigma if gate is None else gate
+        rows, cols, cost, reach = self._candidates(old, xyz, errors, t_s, motion, gate)
+        if unique:  # only pairs with no other candidate on either side
+            one_row = np.bincount(rows, minlength=len(old.ids)) == 1
+            one_col = np.bincount(cols, minlength=len(xyz)) == 1
+            keep = one_row[rows] & one_col[cols]
+            rows, cols, cost = rows[keep], cols[keep], cost[keep]
+        r, c = assign(rows, cols, cost, len(old.ids), len(xyz), unlinked_cost=gate ** 2 / 2)
+        return r, c, reach
+
+    def _before_last(self, old: _Active, rows: np.ndarray, xyz: np.ndarray, cols: np.ndarray, errors: DepthErrors,
+                     t_s: float, motion: RigidMotion | None) -> tuple[np.ndarray, np.ndarray]:
+        """Trajectories left unlinked try again from the position before their last, among the
+        particles left unlinked, where each is the other's only candidate: one detection far off (a
+        depth outlier) is passed over instead of ending the trajectory (its particle, found again,
+        would start a new one)."""
+        left_old = np.setdiff1d(np.arange(len(old.ids)), rows)
+        left_old = left_old[np.isfinite(old.prev_t[left_old]) & ~old.errors.open[left_old]]
+        left_new = np.setdiff1d(np.arange(len(xyz)), cols)
+        if not self.params.from_before_last or left_old.size == 0 or left_new.size == 0:
+            return rows, cols
+        z = old.prev_xyz[left_old, 2]
+        earlier = _Active(old.ids[left_old], old.prev_xyz[left_old], old.prev_t[left_old], old.frame[left_old],
+                          DepthErrors(old.errors.extra_sigma_mm[left_old], z, z))
+        r, c, _ = self._link_once(earlier, xyz[left_new], errors.take(left_new), t_s, motion, unique=True)
+        return np.r_[rows, left_old[r]], np.r_[cols, left_new[c]]
+
+    def _candidates(self, old: _Active, xyz: np.ndarray, errors: DepthErrors, t_s: float,
+                    motion: RigidMotion | None, gate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Pairs (trajectory, particle) within the gate, their costs, and the largest reach (mm)."""
         p = self.params
-        gate = p.gate_sigma if gate is None else gate
         predicted = motion.predict(old.xyz, old.t, t_s) if (p.predict and motion is not None) else old.xyz
         shift_z = predicted[:, 2] - old.xyz[:, 2]
-        gap = np.maximum((t_s - old.t) / self.interval_s, 1.0)
+        gap = self._gaps(old.t, t_s)
         spread = float(np.max(self.step_mm))
         reach = np.minimum(gate * spread * gap, p.max_step_nn * self.nn_mm * gap)
         open_width = (old.errors.z_high - old.errors.z_low) + float(np.max(errors.z_high - errors.z_low, initial=0.0))
@@ -289,12 +341,7 @@ class Linker:
         # The search range in mm: a link also stays within max_step_nn of the mean NN distance.
         within = np.linalg.norm(offset, axis=1) <= p.max_step_nn * self.nn_mm * gap[rows]
         keep = within & (cost <= gate ** 2)
-        if unique:  # only pairs with no other candidate on either side
-            one_row = np.bincount(rows[keep], minlength=len(old.ids)) == 1
-            one_col = np.bincount(cols[keep], minlength=len(xyz)) == 1
-            keep &= one_row[rows] & one_col[cols]
-        r, c = assign(rows[keep], cols[keep], cost[keep], len(old.ids), len(xyz), unlinked_cost=gate ** 2 / 2)
-        return r, c, float(np.max(reach, initial=0.0))
+        return rows[keep], cols[keep], cost[keep], float(np.max(reach, initial=0.0))
 
     def _refit(self, old: _Active, rows: np.ndarray, xyz: np.ndarray, cols: np.ndarray, t_s: float,
                errors: DepthErrors, *, first: bool) -> RigidMotion | None:
@@ -356,6 +403,13 @@ class Linker:
         _, first = np.unique(every.ids, return_index=True)
         last_frame = int(recent[-1][0]) if recent else None
         latest = every.take(first)
+        rest = every.take(np.setdiff1d(np.arange(len(every.ids)), first))  # each one's observation before
+        ids, second = np.unique(rest.ids, return_index=True)
+        where = np.searchsorted(ids, latest.ids)
+        known = (where < ids.size) & (ids[np.minimum(where, ids.size - 1)] == latest.ids) if ids.size else \
+            np.zeros(len(latest.ids), bool)
+        latest.prev_xyz[known] = rest.xyz[second[where[known]]]
+        latest.prev_t[known] = rest.t[second[where[known]]]
         linker.active = latest.take(latest.frame >= last_frame - linker.params.memory)
         linker.last_frame = last_frame
         times = sorted({float(r[1]) for r in recent})
@@ -376,7 +430,9 @@ class Linker:
                                                   "omega_rad_s": m.omega_rad_s.tolist()},
                 "active": {"ids": a.ids.tolist(), "xyz": a.xyz.tolist(), "t": a.t.tolist(), "frame": a.frame.tolist(),
                            "extra": a.errors.extra_sigma_mm.tolist(), "z_low": a.errors.z_low.tolist(),
-                           "z_high": a.errors.z_high.tolist()}}
+                           "z_high": a.errors.z_high.tolist(),
+                           "prev_xyz": np.where(np.isfinite(a.prev_xyz), a.prev_xyz, None).tolist(),
+                           "prev_t": np.where(np.isfinite(a.prev_t), a.prev_t, None).tolist()}}
 
     @classmethod
     def from_state(cls, state: Mapping[str, Any]) -> Linker:
@@ -396,5 +452,7 @@ class Linker:
         linker.active = _Active(np.asarray(a["ids"], np.int64), np.asarray(a["xyz"], float).reshape(-1, 3),
                                 np.asarray(a["t"], float), np.asarray(a["frame"], np.int64),
                                 DepthErrors(np.asarray(a["extra"], float), np.asarray(a["z_low"], float),
-                                            np.asarray(a["z_high"], float)))
+                                            np.asarray(a["z_high"], float)),
+                                np.asarray(a.get("prev_xyz", []), float).reshape(-1, 3),  # None -> NaN
+                                np.asarray(a.get("prev_t", []), float))
         return linker

@@ -24,7 +24,7 @@ import numpy as np
 
 from .structure import PairCorrelation, pair_correlation, shells
 from .temperature import AXES, NoiseEstimate, position_noise, shot_temperature
-from .trajectories import velocities
+from .trajectories import two_sided, velocities
 from .units import particle_mass_kg
 
 if TYPE_CHECKING:
@@ -56,8 +56,9 @@ class RunSummary:
         return float(t.mean()), float(t.std(ddof=1) / math.sqrt(t.size)) if t.size > 1 else math.nan
 
 
-def summarize(linked: pd.DataFrame, *, mass_kg: float | None = None, lags: int = 4, g_bins: int = 40,
-              frames: list[int] | None = None, noise: NoiseEstimate | None = None) -> RunSummary:
+def summarize(linked: pd.DataFrame, *, mass_kg: float | None = None, lags: int = 7, g_bins: int = 40,
+              frames: list[int] | None = None, noise: NoiseEstimate | None = None,
+              two_sided_only: bool = False) -> RunSummary:
     """Describe each shot of a linked run (see the module docstring).
 
     Parameters
@@ -68,13 +69,17 @@ def summarize(linked: pd.DataFrame, *, mass_kg: float | None = None, lags: int =
     mass_kg : float, optional
         Particle mass; default the paper's MF particles (9.16 um, 1510 kg/m^3).
     lags : int
-        Lags (frames) of the noise fit.
+        Largest lag (frames) of the noise fit.
     g_bins : int
         Bins of g(r).
     frames : list of int, optional
         Only these frames (the noise is still measured over the whole table).
     noise : NoiseEstimate, optional
         Use this position noise instead of measuring it.
+    two_sided_only : bool
+        Temperatures from central velocities only (the trajectory seen before and after): the
+        newest shot of a run still being taken then has none, rather than a noisier one-sided
+        value (four times the noise to take out) that can come out negative.
 
     Returns
     -------
@@ -88,6 +93,8 @@ def summarize(linked: pd.DataFrame, *, mass_kg: float | None = None, lags: int =
     if noise is None:
         noise = position_noise(particle, frame, t, xyz, lags=lags)
     velocity = linked[["vX", "vY", "vZ"]].to_numpy(float)
+    if two_sided_only:
+        velocity = np.where(two_sided(particle, t)[:, None], velocity, np.nan)
     _, dt = velocities(particle, t, xyz, with_dt=True)
     groups = linked.groupby("frame").indices
     wanted = sorted(groups) if frames is None else [f for f in frames if f in groups]

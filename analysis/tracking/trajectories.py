@@ -198,6 +198,21 @@ def velocities(particle: np.ndarray, t: np.ndarray, xyz: np.ndarray, open_depth:
     return (out, out_dt) if with_dt else out
 
 
+def two_sided(particle: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Rows whose trajectory is seen both before and after them (their velocity is central).
+
+    >>> two_sided(np.array([0, 0, 0, 1]), np.array([0.0, 1.0, 2.0, 1.0])).tolist()
+    [False, True, False, False]
+    """
+    particle, t = np.asarray(particle), np.asarray(t, float)
+    order = np.lexsort((t, particle))
+    p = particle[order]
+    same = p[1:] == p[:-1]
+    out = np.zeros(len(p), bool)
+    out[order] = np.r_[False, same] & np.r_[same, False] & (p >= 0)
+    return out
+
+
 def order_columns(df: pd.DataFrame) -> pd.DataFrame:
     lead = [c for c in LEADING_COLUMNS if c in df.columns]
     return df[lead + [c for c in df.columns if c not in lead]]
