@@ -40,8 +40,9 @@ def test_track_links_a_run_in_shot_time_order_and_recovers_the_truth(run, tmp_pa
     score = score_tracks(linked, read_truth_run(run))
     assert score["links_judged"] > 50 and score["links_right"] >= 0.97
     assert score["fragments_per_particle"] < 1.15
-    # Velocities within a fraction of the true speeds (lateral; depth is the noisy axis).
-    err, speed = score["velocity_rms_error_mm_s"], score["true_speed_rms_mm_s"]
+    # Velocities within a fraction of the true speeds (lateral; depth is the noisy axis), where the
+    # links are right (the few wrong ones are judged above: each puts a step of about an NN in).
+    err, speed = score["velocity_rms_error_right_links_mm_s"], score["true_speed_rms_mm_s"]
     assert err[0] < 0.5 * speed[0] and err[1] < 0.5 * speed[1]
     structure = pd.read_csv(summary)
     assert structure["frame"].tolist() == list(range(SHOTS))
