@@ -306,7 +306,7 @@ def test_a_single_particle_is_not_split():
     assert len(split) == 1
 
 
-def _isolated_particles(size, spacing_pitches, blur_pitches, *, camera=None):
+def _isolated_particles(size, spacing_pitches, blur_pitches):
     """Noise-free particles on a square grid ``spacing_pitches`` apart (no overlap), blurred over
     ``blur_pitches`` (signed as ``c``: positive in front of focus), each a little off its lens centre:
     model, fit table, lens-plane positions, ``c`` per particle, particles, raw image."""
@@ -323,7 +323,7 @@ def _isolated_particles(size, spacing_pitches, blur_pitches, *, camera=None):
     z = np.asarray(optics.z_of_alpha(1.0 / (1.0 - c)))
     particles = Particles(s_hat[:, 0] * z / optics.exit_pupil_m, s_hat[:, 1] * z / optics.exit_pupil_m, z,
                           np.full(n, 1800.0))
-    return model, table, s_hat, c, particles, render_exposure(model, particles, seed=5, noise=False, camera=camera)
+    return model, table, s_hat, c, particles, render_exposure(model, particles, seed=5, noise=False)
 
 
 def test_depth_scale_of_blurred_particles_is_unbiased():
@@ -410,27 +410,3 @@ def test_a_true_pair_on_one_line_of_sight_is_two():
     faint, bright = np.argsort(fit.intensity)
     assert not one_particle(fitter, fit, np.array([faint]), np.array([bright])).any()
 
-
-def test_a_blur_wider_than_the_ideal_does_not_pull_blurred_particles_toward_focus():
-    """Under a 0.8 px blur (told), a coarse pass of pixel centres reads each lens's blurred small
-    spot of a particle blurred over 9-12 pitches as a larger one, a depth nearer focus, and the fine
-    pass searches about it; the deblend refits model pixel areas there and re-centre the fine pass."""
-    from analysis.depth.deblend import DEBLEND_RECENTRE
-    from analysis.depth.rayfit import blur_aware
-    from analysis.depth.refine import COARSE_LATERAL_PITCHES, WIDE_FINE_GRID
-    from analysis.simulation.camera_effects import CameraEffects
-    from analysis.simulation.realism import Realism
-
-    camera = CameraEffects.build(Realism(blur_px=0.8), serial="A202160042")
-    model, table, s_hat, c, _, image = _isolated_particles(1280, 30.0, np.linspace(9.0, 12.0, 9), camera=camera)
-    optics = model.optics
-    centres = PIPELINE_COARSE._replace(lateral_pitches=COARSE_LATERAL_PITCHES)
-    assert blur_aware(centres, 0.5) == centres  # the ideal optics' blur: pixel centres
-    bias = {}
-    for name, coarse in (("centres", centres), ("areas", blur_aware(centres, 0.8))):
-        fit = fit_rays(image, table, s_hat[:, 0], s_hat[:, 1], 1.0 / (1.0 - c), background=0.0, blur_px=0.8,
-                       aperture_per_lens_plane=aperture_per_lens_plane(optics), coarse=coarse,
-                       fine=WIDE_FINE_GRID, recentre=DEBLEND_RECENTRE)
-        bias[name] = float(np.mean(fit.alpha - 1.0 / (1.0 - c)))
-    assert bias["centres"] < -1.5e-4, bias  # nearer focus
-    assert abs(bias["areas"]) < 1.2e-4, bias

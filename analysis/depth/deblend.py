@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 from analysis.detection.curves import Peaks
 from analysis.lightfield.table import LightFieldTable
 
-from .rayfit import FitGrid, RayFit, blur_aware
+from .rayfit import FitGrid, RayFit
 from .refine import (FINE_TEMPERATURE, PROBE_FRACTION, PROBE_GRID, PROBE_HALF_RANGE, PROBE_RESIDUAL,
     WIDE_PROBE_GRID, RayFitter, accept, moved, replace_fits)
 
@@ -38,15 +38,12 @@ SPLIT_HOST_MISFIT = 0.6
 #: one's light, misfit <= PROBE_RESIDUAL), whichever stage found it.
 LINE_OF_SIGHT_PITCHES = 1.0
 #: The refits without the neighbours' light may move their fine pass this many times
-#: (``fit_rays(recentre=...)``), and their coarse pass models pixel areas under a blur wider than
-#: the ideal optics' (:func:`analysis.depth.rayfit.blur_aware`): both undo the coarse pass's pull
-#: toward focus. First fits, with the neighbours' light still on, keep theirs: a wider search lets
-#: them slide toward a partner on their line of sight (recentring every fit: shadowing pairs
-#: 2.6 -> 4.0 % NN). Pooled over seeds 1 and 2 (all effects), recentring alone lowered the depth
-#: error of the off-focus ball 6.2 -> 5.8 %, the cloud 7.1 -> 6.1 %, the shadowing pairs 3.1 ->
-#: 2.7 %, the layer 2.1 -> 1.4 % (ideal optics, off-focus ball: 4.1 -> 3.2 %); the coarse pixel
-#: areas then the off-focus ball 5.8 -> 4.8 % and the cloud 5.9 -> 5.5 % (a 0.8 px blur alone:
-#: 7.5 -> 7.3 % and 6.7 -> 5.7 %). Two moves did as well as four.
+#: (``fit_rays(recentre=...)``): it undoes the coarse pass's pull toward focus under a blur wider
+#: than the ideal optics'. First fits, with the neighbours' light still on, keep theirs: a wider
+#: search lets them slide toward a partner on their line of sight (recentring every fit: shadowing
+#: pairs 2.6 -> 4.0 % NN). Pooled over seeds 1 and 2 (all effects) it lowered the depth error of
+#: the off-focus ball 6.2 -> 5.8 %, the cloud 7.1 -> 6.1 %, the shadowing pairs 3.1 -> 2.7 %, the
+#: layer 2.1 -> 1.4 % (ideal optics, off-focus ball: 4.1 -> 3.2 %). Two moves did as well as four.
 DEBLEND_RECENTRE = 2
 
 
@@ -68,9 +65,7 @@ def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit
         fitter.reject(peaks.take(twice), fit.take(twice), "seen_twice")
         keep = np.flatnonzero(~twice)
         peaks, fit = peaks.take(keep), fit.take(keep)
-    coarse = blur_aware(fitter.coarse, fitter.blur_px)
-    new = fitter.fit(fit.sx_m, fit.sy_m, fit.alpha, subtract=explained, own=fit, recentre=DEBLEND_RECENTRE,
-                     coarse=coarse)
+    new = fitter.fit(fit.sx_m, fit.sy_m, fit.alpha, subtract=explained, own=fit, recentre=DEBLEND_RECENTRE)
     ok = fitter.acceptable(new) & ~weak_partners(fitter, new)
     if not ok.all():
         # The dropped fits' light was taken off their neighbours' pixels too: refit those without it.
@@ -82,7 +77,7 @@ def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit
         log.debug("deblend: %d fits dropped, %d neighbours refitted", (~ok).sum(), near.sum())
         if near.any():
             again = fitter.fit(fit.sx_m[near], fit.sy_m[near], fit.alpha[near], subtract=explained,
-                               own=fit.take(near), recentre=DEBLEND_RECENTRE, coarse=coarse)
+                               own=fit.take(near), recentre=DEBLEND_RECENTRE)
             new = replace_fits(fitter.grid, peaks, new, np.flatnonzero(near), again)[1]
     return accept(fitter, peaks, new)
 
@@ -124,8 +119,7 @@ def one_particle(fitter: RayFitter, fit: RayFit, faint: np.ndarray, bright: np.n
     explained = fitter.render(fit)
     explained -= fitter.render(fit.take(np.unique(faint)))
     single = fitter.fit(fit.sx_m[bright], fit.sy_m[bright], fit.alpha[bright], subtract=explained,
-                        own=fit.take(bright), recentre=DEBLEND_RECENTRE,
-                        coarse=blur_aware(fitter.coarse, fitter.blur_px))
+                        own=fit.take(bright), recentre=DEBLEND_RECENTRE)
     # RayFit.residual is the misfit per sample over the intensity: compare misfits in DN.
     one = single.residual * single.intensity < fit.residual[bright] * fit.intensity[bright]
     log.debug("line of sight: %d of %d pairs are one particle", one.sum(), one.size)

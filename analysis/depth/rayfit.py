@@ -224,26 +224,6 @@ def _prior_in_c(n: int, prior_alpha: np.ndarray | None, prior_sigma: np.ndarray 
     return np.where(use, 1.0 - 1.0 / np.where(use, a, 1.0), 0.0), k
 
 
-#: A pass that models each pixel by its centre does so while the optics' blur is about the ideal's;
-#: where the blurred pixel is this much wider (``sqrt(1/12 + blur^2)`` over the ideal's: from a
-#: 0.6 px blur), :func:`blur_aware` models it by 2 x 2 points.
-WIDE_BLUR_WIDENING = 1.15
-
-
-def blur_aware(grid: FitGrid, blur_px: float) -> FitGrid:
-    """``grid``, with each pixel modelled by 2 x 2 points over its blurred area where it takes one
-    point and ``blur_px`` is wider than the ideal optics' by :data:`WIDE_BLUR_WIDENING`.
-
-    One point per pixel reads the blurred small spot that each micro-lens holds of a defocused
-    particle as a larger spot, that is a depth nearer focus: with a 0.8 px blur, noise-free
-    particles blurred over 9-12 pitches came out 2.2e-4 in alpha nearer focus after the fine pass
-    (which searches about the coarse depth), 0.8e-4 with 2 x 2 points."""
-    widening = np.sqrt((1.0 / 12.0 + blur_px ** 2) / (1.0 / 12.0 + DEFAULT_BLUR_PX ** 2))
-    if grid.pixel_points == 1 and widening >= WIDE_BLUR_WIDENING:
-        return grid._replace(pixel_points=2)
-    return grid
-
-
 def aperture_per_lens_plane(optics: Any) -> float:
     """``(P + d) / d``: a lens-plane step between lens centres moves their micro-images by this many
     aperture metres (optics of :class:`analysis.camera.model.Optics`)."""
