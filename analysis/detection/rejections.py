@@ -22,7 +22,8 @@ REASONS: dict[str, str] = {
     "duplicate": "its fit converged onto a particle already found",
     "outside_range": "its fit left the alpha range",
     "edge_of_range": "its brightness is highest at the edge of the alpha range: it may lie outside",
-    "seen_twice": "its light is explained by a neighbouring particle (a duplicate or a ghost at another depth)",
+    "seen_twice": ("its light is explained by a neighbouring particle (a duplicate, a ghost at another depth, "
+                   "or one particle fitted twice on its line of sight)"),
     "weak_residual": "left-over light of the particles found, too weak for a particle of its own",
     "extended": "its light does not converge to a point: an extended source (reflection, glow, glare)",
 }
