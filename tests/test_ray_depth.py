@@ -306,7 +306,7 @@ def test_a_single_particle_is_not_split():
     assert len(split) == 1
 
 
-def _isolated_particles(size, spacing_pitches, blur_pitches):
+def _isolated_particles(size, spacing_pitches, blur_pitches, *, camera=None):
     """Noise-free particles on a square grid ``spacing_pitches`` apart (no overlap), blurred over
     ``blur_pitches`` (signed as ``c``: positive in front of focus), each a little off its lens centre:
     model, fit table, lens-plane positions, ``c`` per particle, particles, raw image."""
@@ -323,7 +323,7 @@ def _isolated_particles(size, spacing_pitches, blur_pitches):
     z = np.asarray(optics.z_of_alpha(1.0 / (1.0 - c)))
     particles = Particles(s_hat[:, 0] * z / optics.exit_pupil_m, s_hat[:, 1] * z / optics.exit_pupil_m, z,
                           np.full(n, 1800.0))
-    return model, table, s_hat, c, particles, render_exposure(model, particles, seed=5, noise=False)
+    return model, table, s_hat, c, particles, render_exposure(model, particles, seed=5, noise=False, camera=camera)
 
 
 def test_depth_scale_of_blurred_particles_is_unbiased():
@@ -410,3 +410,25 @@ def test_a_true_pair_on_one_line_of_sight_is_two():
     faint, bright = np.argsort(fit.intensity)
     assert not one_particle(fitter, fit, np.array([faint]), np.array([bright])).any()
 
+
+def test_recentring_the_fine_pass_reaches_the_depth_of_particles_under_a_wider_blur():
+    """Under a 0.8 px blur (told), the coarse pass of pixel centres reads each lens's blurred spot of
+    a particle blurred over 5-8 pitches as a larger one, a depth nearer focus, and the fine pass
+    searched only about it; run again about its own result (as the deblend refits do), it gets there."""
+    from analysis.depth.deblend import DEBLEND_RECENTRE
+    from analysis.depth.refine import COARSE_LATERAL_PITCHES, WIDE_FINE_GRID
+    from analysis.simulation.camera_effects import CameraEffects
+    from analysis.simulation.realism import Realism
+
+    camera = CameraEffects.build(Realism(blur_px=0.8), serial="A202160042")
+    model, table, s_hat, c, _, image = _isolated_particles(1280, 30.0, np.linspace(5.0, 8.0, 9), camera=camera)
+    error = {}
+    for recentre in (0, DEBLEND_RECENTRE):
+        fit = fit_rays(image, table, s_hat[:, 0], s_hat[:, 1], 1.0 / (1.0 - c), background=0.0, blur_px=0.8,
+                       aperture_per_lens_plane=aperture_per_lens_plane(model.optics),
+                       coarse=PIPELINE_COARSE._replace(depths=17, lateral_pitches=COARSE_LATERAL_PITCHES),
+                       fine=WIDE_FINE_GRID, recentre=recentre)
+        error[recentre] = fit.alpha - 1.0 / (1.0 - c)
+    assert np.mean(error[0]) < -1.2e-4, error  # nearer focus
+    assert abs(np.mean(error[DEBLEND_RECENTRE])) < 0.8e-4, error
+    assert np.sqrt(np.mean(error[DEBLEND_RECENTRE] ** 2)) < 1.2e-4, error
