@@ -13,6 +13,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from analysis.camera.lattice_kernels import nearest_lens
+
 # fastmath without nnan/ninf (style guide): infinities and NaNs keep their meaning; the second
 # stop's radius is +inf when there is none.
 _FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
@@ -97,37 +99,6 @@ def paint_micro_images(out: np.ndarray, cx: np.ndarray, cy: np.ndarray, value: n
 
 
 @njit(cache=True, fastmath=_FASTMATH)
-def _nearest_lens(x: float, y: float, origin_x: float, origin_y: float, basis: np.ndarray,
-                  inverse: np.ndarray) -> tuple[int, int, float, float]:  # pragma: no cover - compiled
-    """Lens ``(i, j)`` whose micro-image centre is nearest to ``(x, y)``, and that centre."""
-    dx = x - origin_x
-    dy = y - origin_y
-    fi = inverse[0, 0] * dx + inverse[0, 1] * dy
-    fj = inverse[1, 0] * dx + inverse[1, 1] * dy
-    i0 = math.floor(fi)
-    j0 = math.floor(fj)
-    best = np.inf
-    bi = 0
-    bj = 0
-    bx = 0.0
-    by = 0.0
-    for di in range(2):
-        for dj in range(2):
-            i = i0 + di
-            j = j0 + dj
-            mx = origin_x + basis[0, 0] * i + basis[0, 1] * j
-            my = origin_y + basis[1, 0] * i + basis[1, 1] * j
-            d = (mx - x) * (mx - x) + (my - y) * (my - y)
-            if d < best:
-                best = d
-                bi = int(i)
-                bj = int(j)
-                bx = mx
-                by = my
-    return bi, bj, bx, by
-
-
-@njit(cache=True, fastmath=_FASTMATH)
 def _source_radiance(source: np.ndarray, x_mm: float, y_mm: float) -> float:  # pragma: no cover - compiled
     """Radiance of one source (a row of `trace_extended_sources`) at object point ``(x_mm, y_mm)``."""
     ex = x_mm - source[3]
@@ -187,9 +158,9 @@ def trace_extended_sources(out: np.ndarray, row0: int, row1: int, col0: int, col
                 qy = r + (a + 0.5) * inv_n
                 for b in range(n):
                     qx = c + (b + 0.5) * inv_n
-                    i, j, mx, my = _nearest_lens(qx, qy, origin_x, origin_y, basis, inverse)
-                    ox = qx - mx
-                    oy = qy - my
+                    i, j, ox, oy, _ = nearest_lens(qx - origin_x, qy - origin_y, basis, inverse)
+                    mx = qx - ox
+                    my = qy - oy
                     ux = -ox * px_to_ap
                     uy = -oy * px_to_ap
                     if ux * ux + uy * uy > ap_r * ap_r:
