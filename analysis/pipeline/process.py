@@ -55,7 +55,7 @@ from analysis.depth.deblend import deblend, split_shared
 from analysis.depth.prior import apply_depth_prior
 from analysis.depth.quality import drop_extended
 from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
-from analysis.depth.refine import (COARSE_LATERAL_PITCHES, COARSE_TEMPERATURE, PROBE_FRACTION, PROBE_RESIDUAL,
+from analysis.depth.refine import (COARSE_LATERAL_PITCHES, COARSE_TEMPERATURE, PROBE_RESIDUAL,
                                    RayFitter, inside, refine_peaks, residual_image)
 from analysis.detection.curves import Peaks, Tracks
 from analysis.detection.rejections import Rejections
@@ -78,11 +78,20 @@ log = logging.getLogger(__name__)
 
 #: Above this fraction of saturated green pixels an exposure holds no usable particle image.
 SATURATED_FRAME_FRACTION = 0.2
-#: A later detection pass keeps blobs at least this fraction of the peak height of the brightest
-#: found particle whose light reaches them: left-over light of imperfectly modelled particles makes
-#: weak blobs (a fifth of that particle's peak or less).
-NEW_PEAK_FRACTION = 0.3
+#: A later detection pass fits only blobs at least this fraction of the peak height of the
+#: brightest found particle whose light reaches them (a cheap screen before the fit: a quarter of
+#: the faint particles of a 12x brightness spread, half hidden in a bright one's blur, peak below
+#: 0.05 of it).
+NEW_PEAK_FRACTION = 0.03
+#: A new particle must be this fraction as bright as the brightest found particle whose light
+#: reaches it (left-over light of an imperfectly modelled one: a fifth of it or less) ...
 NEW_FRACTION = 0.2
+#: ... or fit its pixels this well (misfit per sample over its intensity; left-over light fits at
+#: 0.1-0.2, faint particles at 0.03-0.12) ...
+NEW_RESIDUAL = 0.1
+#: ... and be this many times brighter than the misfit (DN per sample) of the found particles whose
+#: light reaches it: light their model fails to explain cannot pass for a particle of its own.
+NEW_OVER_MISFIT = 4.0
 
 
 def process(exposure: Exposure, calibration: Calibration, params: PipelineParams | None = None, *,
@@ -309,17 +318,20 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, background: Backgroun
     # it; a faint particle of its own may lie anywhere (brightness spreads 10x or more): so each
     # candidate is weighed against the found particles whose light reaches it, not against all.
     sx, sy = fitter.grid.to_lens_plane(new.x, new.y)
-    weak = new.peak_height < NEW_PEAK_FRACTION ** 2 * fitter.overlapping_max(sx, sy, new.alpha, fit, peaks.peak_height)
+    weak = new.peak_height < NEW_PEAK_FRACTION * fitter.overlapping_max(sx, sy, new.alpha, fit, peaks.peak_height)
     fitter.reject(new.take(weak), None, "weak_residual")
     new = new.take(~weak)
     log.debug("another pass: %d candidates", len(new))
     if len(new) == 0:
         return None
     new, new_fit = inside(fitter, *refine_peaks(fitter, new, subtract=explained), limits)
-    # As for hidden particles: a new one must fit well and be a good part as bright as the particles
-    # whose light reaches it.
+    # A new one must fit well and be a good part as bright as the particles whose light reaches it,
+    # or fit very well and outshine what their model leaves unexplained: the faint particles of a
+    # wide brightness spread pass only the second test.
     neighbour = fitter.overlapping_max(new_fit.sx_m, new_fit.sy_m, new_fit.alpha, fit, fit.intensity)
-    good = (new_fit.residual <= PROBE_RESIDUAL) & (new_fit.intensity >= NEW_FRACTION * neighbour)
+    misfit_dn = fitter.overlapping_max(new_fit.sx_m, new_fit.sy_m, new_fit.alpha, fit, fit.intensity * fit.residual)
+    good = (((new_fit.residual <= PROBE_RESIDUAL) & (new_fit.intensity >= NEW_FRACTION * neighbour))
+            | ((new_fit.residual <= NEW_RESIDUAL) & (new_fit.intensity >= NEW_OVER_MISFIT * misfit_dn)))
     fitter.reject(new.take(~good), new_fit.take(~good), "weak_residual")
     new, new_fit = new.take(good), new_fit.take(good)
     if len(new) == 0:
