@@ -85,3 +85,20 @@ def test_particles_beyond_the_papers_alpha_range_are_found_by_default():
     fixed, _, _ = _process(grown, params=PipelineParams(alpha_min=0.987, alpha_max=1.013))
     assert len(fixed) < len(result)
     assert np.count_nonzero(fixed.rejected["reason"] == "edge_of_range") >= 1
+
+
+def test_particles_beside_a_glint_are_kept_and_the_glint_yields_none():
+    """Bright out-of-focus glints 5 mm behind the particles, each 0.2 mm beside one of them: the
+    glints' light fills the margin around those particles but not their own blur disks, so they are
+    no extended light; no particle is made of a glint's light."""
+    gx, gy = np.meshgrid([-1.2, 0.0, 1.2], [-1.2, 0.0, 1.2])
+    z = 59.0 + np.random.default_rng(2).uniform(-1.5, 1.5, gx.size)
+    grid = Particles(gx.ravel(), gy.ravel(), z, np.full(gx.size, 1800.0))
+    glints = tuple(ExtendedSource(kind="glint", z_mm=64.0, x_mm=float(x + 0.2), y_mm=float(y), sigma_mm=0.1,
+                                  level_dn=2500.0) for x, y in zip(gx.ravel()[::2], gy.ravel()[::2]))
+    result, truth, _ = _process(grid, chamber=ChamberLight(sources=glints))
+    assert truth["X"].size == 9
+    s = score(result.particles, truth, nn_mm=mean_nn_distance(truth["X"], truth["Y"], truth["Z"]))
+    # Judged by the light around them alone, four of the nine were dropped with the glints.
+    assert s.n_matched >= 7 and _all_real(result, grid), s
+    assert np.count_nonzero(result.rejected["reason"] == "extended") > 0
