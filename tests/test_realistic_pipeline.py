@@ -102,3 +102,22 @@ def test_particles_beside_a_glint_are_kept_and_the_glint_yields_none():
     # Judged by the light around them alone, four of the nine were dropped with the glints.
     assert s.n_matched >= 7 and _all_real(result, grid), s
     assert np.count_nonzero(result.rejected["reason"] == "extended") > 0
+
+
+def test_a_faint_partner_on_a_bright_particles_line_of_sight_is_found():
+    """Nine pairs on one line of sight each, 1-2 mm apart in depth, the partner with 0.3 of the
+    light (brightness spreads 10x and more): its tight fit, far brighter than what the bright one's
+    model leaves unexplained, is evidence of a particle, though it is under a probe's share of the
+    light."""
+    gx, gy = np.meshgrid([-1.2, 0.0, 1.2], [-1.2, 0.0, 1.2])
+    rng = np.random.default_rng(3)
+    z1 = 59.5 + rng.uniform(-0.5, 0.5, gx.size)
+    z2 = z1 + rng.uniform(1.0, 2.0, gx.size) * rng.choice([-1, 1], gx.size)
+    x1, y1 = gx.ravel(), gy.ravel()
+    pairs = Particles(np.r_[x1, x1 * z2 / z1], np.r_[y1, y1 * z2 / z1], np.r_[z1, z2],
+                      np.r_[np.full(9, 5000.0), np.full(9, 1500.0)])
+    result, truth, _ = _process(pairs)
+    assert truth["X"].size == 18
+    s = score(result.particles, truth, nn_mm=mean_nn_distance(truth["X"], truth["Y"], truth["Z"]))
+    # With a fixed share of the brighter one's light as the only evidence: 9 of 18.
+    assert s.n_matched >= 15 and _all_real(result, pairs), s

@@ -18,7 +18,7 @@ from analysis.lightfield.table import LightFieldTable
 
 from .rayfit import FitGrid, RayFit
 from .refine import (FINE_TEMPERATURE, PROBE_FRACTION, PROBE_GRID, PROBE_HALF_RANGE, PROBE_RESIDUAL,
-    WIDE_PROBE_GRID, RayFitter, accept, moved, replace_fits)
+    WIDE_PROBE_GRID, RayFitter, accept, moved, outshines_misfit, replace_fits)
 
 log = logging.getLogger(__name__)
 
@@ -85,8 +85,9 @@ def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit
 def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
     """Fits (a mask) on a brighter fit's line of sight (within :data:`LINE_OF_SIGHT_PITCHES`) with
     less evidence of their own than a probe needs (under :data:`PROBE_FRACTION` of its light, or
-    misfitting beyond :data:`PROBE_RESIDUAL`), or whose light and the brighter one's one particle
-    explains better than the pair does (:func:`one_particle`)."""
+    misfitting beyond :data:`PROBE_RESIDUAL`) and not outshining the brighter one's misfit
+    (:func:`analysis.depth.refine.outshines_misfit`), or whose light and the brighter one's one
+    particle explains better than the pair does (:func:`one_particle`)."""
     weak = np.zeros(len(fit), dtype=bool)
     if len(fit) < 2:
         return weak
@@ -95,8 +96,9 @@ def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
     a, b = pairs[:, 0], pairs[:, 1]
     a_fainter = fit.intensity[a] < fit.intensity[b]
     faint, bright = np.where(a_fainter, a, b), np.where(a_fainter, b, a)
-    unproven = ((fit.intensity[faint] < PROBE_FRACTION * fit.intensity[bright])
-                | (fit.residual[faint] > PROBE_RESIDUAL))
+    unproven = (((fit.intensity[faint] < PROBE_FRACTION * fit.intensity[bright])
+                 | (fit.residual[faint] > PROBE_RESIDUAL))
+                & ~outshines_misfit(fit.take(faint), fit.intensity[bright] * fit.residual[bright]))
     weak[faint[unproven]] = True
     faint, bright = faint[~unproven], bright[~unproven]
     weak[faint[one_particle(fitter, fit, faint, bright)]] = True

@@ -76,6 +76,13 @@ PROBE_HALF_RANGE = 0.0025
 PROBE_RESIDUAL = 0.2
 #: ... and be at least this fraction as bright as the particle it hides behind.
 PROBE_FRACTION = 0.35
+#: Whatever the brightness ratio, a fit is evidence of a particle of its own, not light that a
+#: neighbour's imperfect model leaves, when it fits its pixels this well (misfit per sample over its
+#: intensity: such left-over light fits at 0.1-0.2, faint particles at 0.03-0.12) ...
+FAINT_RESIDUAL = 0.1
+#: ... and is this many times brighter than that neighbour's misfit (DN per sample): the faint end
+#: of a 12x brightness spread passes no fixed fraction of its brighter neighbours' light.
+FAINT_OVER_MISFIT = 4.0
 #: Probe behind a particle when the light left over around it exceeds this fraction of its own ...
 PROBE_LIGHT = 0.5
 #: ... or when its fit is this many times brighter than the median (it may hold a hidden one's light).
@@ -324,6 +331,13 @@ def _second_look(fitter: RayFitter, fit: RayFit, subtract: np.ndarray | None) ->
     passed = fitter.acceptable(again)
     log.debug("second look: %d near misfits refitted, %d pass", rows.size, passed.sum())
     return fit.with_rows(rows[passed], again.take(np.flatnonzero(passed)))
+
+
+def outshines_misfit(fit: RayFit, misfit_dn: np.ndarray) -> np.ndarray:
+    """Fits (a mask) too good and too bright to be light a neighbour's imperfect model leaves:
+    misfit within :data:`FAINT_RESIDUAL`, light :data:`FAINT_OVER_MISFIT` times ``misfit_dn`` (the
+    neighbours' misfit, DN per sample, one value per fit)."""
+    return (fit.residual <= FAINT_RESIDUAL) & (fit.intensity >= FAINT_OVER_MISFIT * np.asarray(misfit_dn))
 
 
 def accept(fitter: RayFitter, peaks: Peaks, fit: RayFit, max_residual: float | None = None, *,

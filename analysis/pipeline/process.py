@@ -56,7 +56,7 @@ from analysis.depth.prior import apply_depth_prior
 from analysis.depth.quality import drop_extended
 from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
 from analysis.depth.refine import (COARSE_LATERAL_PITCHES, COARSE_TEMPERATURE, PROBE_RESIDUAL,
-                                   RayFitter, inside, refine_peaks, residual_image)
+                                   RayFitter, inside, outshines_misfit, refine_peaks, residual_image)
 from analysis.detection.curves import Peaks, Tracks
 from analysis.detection.rejections import Rejections
 from analysis.errors import CameraMismatchError, MetadataError
@@ -84,14 +84,9 @@ SATURATED_FRAME_FRACTION = 0.2
 #: 0.05 of it).
 NEW_PEAK_FRACTION = 0.03
 #: A new particle must be this fraction as bright as the brightest found particle whose light
-#: reaches it (left-over light of an imperfectly modelled one: a fifth of it or less) ...
+#: reaches it (left-over light of an imperfectly modelled one: a fifth of it or less), or outshine
+#: their misfit (:func:`analysis.depth.refine.outshines_misfit`).
 NEW_FRACTION = 0.2
-#: ... or fit its pixels this well (misfit per sample over its intensity; left-over light fits at
-#: 0.1-0.2, faint particles at 0.03-0.12) ...
-NEW_RESIDUAL = 0.1
-#: ... and be this many times brighter than the misfit (DN per sample) of the found particles whose
-#: light reaches it: light their model fails to explain cannot pass for a particle of its own.
-NEW_OVER_MISFIT = 4.0
 
 
 def process(exposure: Exposure, calibration: Calibration, params: PipelineParams | None = None, *,
@@ -331,7 +326,7 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, background: Backgroun
     neighbour = fitter.overlapping_max(new_fit.sx_m, new_fit.sy_m, new_fit.alpha, fit, fit.intensity)
     misfit_dn = fitter.overlapping_max(new_fit.sx_m, new_fit.sy_m, new_fit.alpha, fit, fit.intensity * fit.residual)
     good = (((new_fit.residual <= PROBE_RESIDUAL) & (new_fit.intensity >= NEW_FRACTION * neighbour))
-            | ((new_fit.residual <= NEW_RESIDUAL) & (new_fit.intensity >= NEW_OVER_MISFIT * misfit_dn)))
+            | outshines_misfit(new_fit, misfit_dn))
     fitter.reject(new.take(~good), new_fit.take(~good), "weak_residual")
     new, new_fit = new.take(good), new_fit.take(good)
     if len(new) == 0:
