@@ -15,7 +15,7 @@ from analysis.formats.particle_table import read_csv
 from analysis.pipeline.tables import FIT_TABLE_RIM_PX, get_table
 from analysis.cache import Cache
 from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, pixel_footprint
-from analysis.depth.rayfit_kernels import GridPass, grid_costs
+from analysis.depth.rayfit_kernels import GridPass, _count_inside, _position_offsets, grid_costs
 from analysis.depth.render_kernels import lit_fraction
 from analysis.depth.refine import COARSE_TEMPERATURE
 from analysis.depth.table_index import TableIndex
@@ -225,6 +225,29 @@ def test_grid_costs_match_the_model_one_candidate_at_a_time(blur, points):
     assert np.sum(expected < sum_v2) >= n // 2 and expected.min() < 0.5 * sum_v2
     assert np.unique(expected).size >= n // 2
     np.testing.assert_allclose(costs, expected, rtol=1e-12, atol=1e-12 * sum_v2)
+
+
+def test_point_counts_skip_only_points_settled_at_every_position():
+    """_count_inside counts points inside or beyond a side at every position once: the counts
+    must be those of testing every point at every position, also for points at the bounds."""
+    rng = np.random.default_rng(5)
+    pitch = 1.0
+    normals = np.array([[pitch, 0.0], [0.5 * pitch, 0.866 * pitch], [-0.5 * pitch, 0.866 * pitch]])
+    half_sq = 0.5 * np.einsum("ij,ij->i", normals, normals)
+    half_lat = 0.25 * pitch
+    _, _, d0, d1, d2 = _position_offsets(half_lat, 11, normals)
+    lat_t = (half_lat * np.abs(normals).sum(axis=1) * (1.0 + 1e-9) + 1e-9 * half_sq)
+    # Points everywhere about the cell, and at its sides +- the positions' reach exactly.
+    base = rng.uniform(-1.5, 1.5, size=(400, 3)) * half_sq
+    edges = np.repeat(half_sq[None, :], 60, axis=0) * rng.choice([-1.0, 1.0], size=(60, 3))
+    edges += rng.choice([-1.0, 0.0, 1.0], size=(60, 3)) * lat_t + rng.normal(0.0, 1e-12, size=(60, 3))
+    base = np.ascontiguousarray(np.vstack([base, edges]))
+    cnt = np.empty(d0.size)
+    _count_inside(base, base.shape[0], d0, d1, d2, *half_sq, lat_t, cnt, np.empty(base.shape[0], np.int64))
+    shifted = base[:, None, :] + np.stack([d0, d1, d2], axis=-1)[None, :, :]
+    expected = np.all(np.abs(shifted) <= half_sq, axis=-1).sum(axis=0)
+    np.testing.assert_array_equal(cnt, expected)
+    assert 0 < expected.min() and expected.max() < base.shape[0]
 
 
 def test_deblending_drops_a_particle_seen_twice(scene):

@@ -213,6 +213,7 @@ def grid_costs(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, c
     within = np.empty(n_pos, dtype=np.bool_)
     frac = np.empty(n_pos)
     cnt = np.empty(n_pos)
+    open_pts = np.empty(n_sub, dtype=np.int64)
     s_vf = np.empty(n_pos)
     s_ff = np.empty(n_pos)
     s_f = np.empty(n_pos)
@@ -292,7 +293,7 @@ def grid_costs(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, c
                             base[q, 0] = p0 + c * sub_t[q, 0]
                             base[q, 1] = p1 + c * sub_t[q, 1]
                             base[q, 2] = p2 + c * sub_t[q, 2]
-                        _count_inside(base, n_sub, d0, d1, d2, h0, h1, h2, cnt)
+                        _count_inside(base, n_sub, d0, d1, d2, h0, h1, h2, lat_t, cnt, open_pts)
                         for q in range(n_pos):
                             if frac[q] < 0.0:
                                 frac[q] = cnt[q] / n_sub
@@ -318,7 +319,7 @@ def grid_costs(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, c
                             base[n_pt, 1] = p1 + shift_t[w, 1] + c * sub_t[q, 1]
                             base[n_pt, 2] = p2 + shift_t[w, 2] + c * sub_t[q, 2]
                             n_pt += 1
-                    _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, cnt)
+                    _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, lat_t, cnt, open_pts)
                     # Where points land in the cell, the per-candidate shortcut still applies: the
                     # footprint around the ray, or around one of its six crosstalk rays (whether
                     # or not a point sees that neighbour), must meet the cell by the margin.
@@ -510,13 +511,30 @@ def _beyond(p0, p1, p2, margin, lat_t, half_sq):
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, cnt):
+def _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, lat_t, cnt, open_pts):
     """``cnt[q]``: how many of the points ``base[:n_pt]`` (projections on the three normals) lie in
-    the cell (half-widths ``h``) when moved by position ``q``'s offsets ``(d0, d1, d2)[q]``."""
+    the cell (half-widths ``h``) when moved by position ``q``'s offsets ``(d0, d1, d2)[q]``.
+
+    Points inside (or beyond a side) by more than the positions' reach along each normal
+    (``lat_t``, with a hair of slack) are so at every position and counted once: this count took
+    40 % of a fit's time, and most points of a footprint that straddles a cell edge lie well
+    inside or outside. The counts are the same as testing every point at every position."""
     n_pos = cnt.shape[0]
-    for q in range(n_pos):
-        cnt[q] = 0.0
+    n_in = 0.0
+    n_open = 0
     for i in range(n_pt):
+        a0 = abs(base[i, 0])
+        a1 = abs(base[i, 1])
+        a2 = abs(base[i, 2])
+        if (a0 + lat_t[0] <= h0) & (a1 + lat_t[1] <= h1) & (a2 + lat_t[2] <= h2):
+            n_in += 1.0
+        elif not ((a0 - lat_t[0] > h0) | (a1 - lat_t[1] > h1) | (a2 - lat_t[2] > h2)):
+            open_pts[n_open] = i
+            n_open += 1
+    for q in range(n_pos):
+        cnt[q] = n_in
+    for k in range(n_open):
+        i = open_pts[k]
         b0 = base[i, 0]
         b1 = base[i, 1]
         b2 = base[i, 2]
