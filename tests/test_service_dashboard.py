@@ -81,6 +81,12 @@ def test_dashboard_shows_new_results_live_and_readably(server, sim, chromium) ->
         count = httpx.get(server.url + f"/api/v1/exposures/{exposure}/particles").json()["count"]
         assert f"{count} particles" in status
         assert browser.evaluate("document.querySelectorAll('#exposures li').length") == 2
+        # The header tells the run new shots go to from the run on view.
+        current = httpx.get(server.url + "/api/v1/runs").json()["current"]
+        assert browser.evaluate("document.getElementById('current-run').textContent") == current
+        viewing = browser.evaluate("[document.getElementById('viewing').hidden,"
+                                   " document.getElementById('viewing-run').textContent]")
+        assert viewing == ([True, "dash"] if current == "dash" else [False, "dash"])
         assert browser.evaluate("document.getElementById('particle').options.length") == count
         time.sleep(0.5)
 

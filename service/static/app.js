@@ -54,6 +54,9 @@ async function loadRuns() {
   const runs = await getJSON(`${API}/runs`);
   $("current-run").textContent = runs.current;
   if (!view.run) view.run = runs.items.length ? runs.items[0].run : runs.current;
+  // The run shown below may not be the one new shots go to: say so.
+  $("viewing-run").textContent = view.run || "";
+  $("viewing").hidden = !view.run || view.run === runs.current;
   $("runs").replaceChildren(...runs.items.map(r => {
     const li = document.createElement("li");
     li.dataset.run = r.run;
