@@ -16,6 +16,7 @@ from analysis.calibration.cache import CACHE_VERSION, cache_path, load_calibrati
 from analysis.calibration.white_choice import select_white_image
 from analysis.camera.model import CameraModel, Lattice
 from analysis.errors import CalibrationError, CameraMismatchError, NoWhiteImageError
+from analysis.formats.mapped_npz import is_mapped
 from analysis.calibration.lattice_fit import balance_channels, fit_lattice, lens_centroids
 from analysis.simulation.camera import SimulatedLens, simulated_camera_metadata, simulated_private_metadata
 from analysis.simulation.render import render_white_image
@@ -235,7 +236,7 @@ def test_cache_hit_skips_the_fit(white_folder, tmp_path):
     assert second.devignetting.dtype == np.float32
     np.testing.assert_array_equal(second.devignetting, first.devignetting)
     # Mapped from the cache file, not read: only building a look-up table touches it.
-    assert isinstance(second.devignetting.base, np.memmap) and not second.devignetting.flags.writeable
+    assert is_mapped(second.devignetting) and not second.devignetting.flags.writeable
     assert (second.white_sha1, second.white_name, second.fit_n_lenses) == \
         (first.white_sha1, first.white_name, first.fit_n_lenses)
     assert not any(p.name.endswith(".tmp") for p in path.parent.iterdir())

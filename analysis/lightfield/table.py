@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import uuid
+import zipfile
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -27,6 +28,7 @@ import numpy as np
 from numba import njit, prange
 
 from analysis.formats.atomic_write import atomic_path
+from analysis.formats.mapped_npz import map_members, save_aligned
 from analysis.camera.model import CameraModel
 from analysis.errors import CalibrationError, ParameterError
 from analysis.camera.image_grid import ImageGrid
@@ -35,7 +37,8 @@ if TYPE_CHECKING:
     from analysis.cache import Cache
 
 # Bump when the saved layout changes, so stale caches are rebuilt, not misread.
-TABLE_FORMAT_VERSION = 6
+# 7: members aligned for memory mapping (analysis.formats.mapped_npz).
+TABLE_FORMAT_VERSION = 7
 
 # Empty lens sites kept around the lattice so that shifted samples near the edge still land
 # on the site grid (the simulated f/2 camera shifts by up to about 4 lenses over 0.987 ... 1.013).
@@ -439,6 +442,8 @@ def default_grid(lens_xy_m: np.ndarray, basis_m: np.ndarray, *, oversample: floa
 
 
 _SAVED_ARRAYS = ("pixel_index", "lens", "u_m", "v_m", "weight", "lens_ij", "lens_xy_m", "basis_m")
+#: Arrays of a sample each: mapped from the file by :func:`load_table`.
+_MAPPED_ARRAYS = ("pixel_index", "lens", "u_m", "v_m", "weight")
 _SAVED_SCALARS = ("width", "height", "aperture_radius_m", "micro_image_radius_px", "rim_px", "black_level", "uid")
 #: Kind of the cache entries that :func:`save_table` keeps with a table (:mod:`analysis.lightfield.refocus`).
 NORMALISATION = "normalisation"
@@ -462,12 +467,17 @@ def save_table(table: LightFieldTable, path: str | Path, *, cache: Cache | None 
         payload[f"norm{n}_key"] = np.frombuffer(key[2], dtype=np.uint8)
         payload[f"norm{n}_value"] = value
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, **payload)
+        save_aligned(fh, payload, release=True)
     return path
 
 
 def load_table(path: str | Path, *, cache: Cache | None = None) -> LightFieldTable:
     """Read a table written by :func:`save_table`; its refocus normalisations go into ``cache``.
+
+    The per-sample arrays and the normalisations are mapped from the file, not read: an exposure
+    reads the normalisations of its own alphas only, and the depth fit's table of a drifted lattice
+    gives back the pages of the undrifted one once it has been derived from it
+    (:func:`analysis.pipeline.tables.drifted_fit_table`).
 
     Raises
     ------
@@ -482,15 +492,19 @@ def load_table(path: str | Path, *, cache: Cache | None = None) -> LightFieldTab
                 raise CalibrationError(
                     f"look-up table {path} has format {int(data['format_version'])}, this version reads "
                     f"{TABLE_FORMAT_VERSION}; delete it so it is rebuilt from the calibration")
-            arrays = {name: data[name] for name in _SAVED_ARRAYS}
+            n_norms = 0
+            while f"norm{n_norms}_key" in data.files:
+                n_norms += 1
+            mapped = map_members(path, [*_MAPPED_ARRAYS, *(f"norm{n}_value" for n in range(n_norms))], mode="c")
+
+            def read(name: str) -> np.ndarray:
+                array = mapped.get(name)
+                return array if array is not None and array.flags.aligned else data[name]
+            arrays = {name: read(name) for name in _SAVED_ARRAYS}
             scalars = {name: data[name].item() for name in _SAVED_SCALARS}
             gw, gh, gx, gy, gs = data["grid"].tolist()
-            norms = {}
-            n = 0
-            while f"norm{n}_key" in data.files:
-                norms[data[f"norm{n}_key"].tobytes()] = data[f"norm{n}_value"]
-                n += 1
-    except (OSError, KeyError, ValueError) as exc:
+            norms = {data[f"norm{n}_key"].tobytes(): read(f"norm{n}_value") for n in range(n_norms)}
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
         raise CalibrationError(f"cannot read look-up table {path} ({exc}); delete it so it is rebuilt "
                                "from the calibration") from exc
     table = LightFieldTable(

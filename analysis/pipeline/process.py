@@ -45,7 +45,6 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from analysis.cache import Cache
-from analysis.calibration.cache import release_pages
 from analysis.calibration.calibrate import Calibration
 from analysis.calibration.drift import LatticeDrift, block_phases, estimate_drift
 from analysis.camera.coordinates import Calibration3D, ThinLensCalibration, coordinate_warnings, to_physical
@@ -62,6 +61,7 @@ from analysis.detection.rejections import Rejections
 from analysis.errors import CameraMismatchError, MetadataError
 from analysis.formats.exposure import Exposure, read_exposure
 from analysis.formats.frame_metadata import shot_time_s
+from analysis.formats.mapped_npz import release_pages
 from analysis.lightfield.background import BackgroundMap, estimate_background
 from analysis.lightfield.refocus import default_alphas, products, refocus_stack, subaperture_image
 from analysis.lightfield.samples import background_and_noise, select_samples

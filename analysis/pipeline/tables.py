@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 
 from analysis.cache import Cache, remove_older_versions
-from analysis.calibration.cache import release_pages
 from analysis.calibration.calibrate import Calibration
 from analysis.calibration.drift import LatticeDrift
+from analysis.formats.mapped_npz import release_pages
 from analysis.lightfield.table import (NORMALISATION, TABLE_FORMAT_VERSION, LightFieldTable, build_table, load_table,
                                        save_table, shifted_table)
 
@@ -106,7 +106,8 @@ def drifted_fit_table(calibration: Calibration, cache: Cache, drift: LatticeDrif
 
     ``cache`` keeps one drifted table per calibration, the last one asked for: a run's lattice
     drifts slowly, and each drifted table holds 55 MB (an F01's) that older drifts would keep
-    until the cache's budget pushed them out."""
+    until the cache's budget pushed them out. The undrifted table's columns that the drifted one
+    replaces give their pages back when they are mapped from the disk cache."""
     base = get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
     if drift is None:
         return base
@@ -129,4 +130,6 @@ def drifted_fit_table(calibration: Calibration, cache: Cache, drift: LatticeDrif
     table = shifted_table(base, calibration.devignetting, shift, m_per_px=optics.pixel_pitch_m / optics.projection_factor,
                           patch=calibration.repaired_defects)
     release_pages(calibration.devignetting)
+    for column in (base.u_m, base.v_m, base.weight):  # mapped from the cache (load_table): 55 MB an F01's
+        release_pages(column)
     return cache.put(key, (q, table))[1]
