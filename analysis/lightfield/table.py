@@ -290,8 +290,8 @@ def build_table_from_model(model: CameraModel, devignetting: np.ndarray | None =
         u = -dx * k_ap
         v = -dy * k_ap
         if devignetting is not None:
-            w = devignetting[rr, cc].astype(np.float64)
-            good = w >= min_weight
+            w = devignetting[rr, cc]  # its own dtype until the median (exact in float64 then)
+            good = w.astype(np.float64) >= min_weight
             rr, cc, i, j, u, v, w = rr[good], cc[good], i[good], j[good], u[good], v[good], w[good]
         elif p_exit is None:
             w = np.ones(rr.size)
@@ -299,44 +299,58 @@ def build_table_from_model(model: CameraModel, devignetting: np.ndarray | None =
             # cos^4 of the ray from aperture point (u, v) to the lens centre (s, t).
             s, t = model.lens_plane_position_m(i, j)
             w = (p_exit * p_exit / (p_exit * p_exit + (s - u) ** 2 + (t - v) ** 2)) ** 2
-        parts["pix"].append((rr * model.width + cc).astype(np.int64))
-        parts["i"].append(i)
-        parts["j"].append(j)
-        parts["u"].append(u)
-        parts["v"].append(v)
+        # Kept in the table's own dtypes (the same values as casting at the end): a full-size
+        # table's parts in int64 and float64 took twice the memory, 230 MB for the depth fit's.
+        parts["pix"].append((rr * model.width + cc).astype(np.int32))
+        parts["i"].append(i.astype(np.int32))
+        parts["j"].append(j.astype(np.int32))
+        parts["u"].append(u.astype(np.float32))
+        parts["v"].append(v.astype(np.float32))
         parts["w"].append(w)
 
-    pix = np.concatenate(parts["pix"])
-    if pix.size == 0:
+    if sum(part.size for part in parts["pix"]) == 0:
         raise CalibrationError("no green pixel lies inside a micro-image; the lattice misses the sensor, "
                                "re-run the calibration")
-    li = np.concatenate(parts["i"])
-    lj = np.concatenate(parts["j"])
+    li = _joined(parts, "i")
+    lj = _joined(parts, "j")
     imin, jmin = int(li.min()), int(lj.min())
     ni = int(li.max()) - imin + 1
-    key = (lj - jmin) * ni + (li - imin)
+    key = (lj.astype(np.int64) - jmin) * ni + (li - imin)
+    del li, lj
     # Samples ordered by lens (row j, then i): neighbours in memory are neighbours on the lattice.
     order = np.argsort(key, kind="stable")
     key = key[order]
-    lens_keys, lens = np.unique(key, return_inverse=True)
+    # Lens numbers in key order (what np.unique(key, return_inverse=True) gives, without its copies).
+    first = np.empty(key.size, dtype=bool)
+    first[0] = True
+    np.not_equal(key[1:], key[:-1], out=first[1:])
+    lens_keys = key[first]
+    lens = np.cumsum(first, dtype=np.int32)
+    lens -= 1
+    del key, first
     lens_ij = np.stack([lens_keys % ni + imin, lens_keys // ni + jmin], axis=1).astype(np.int32)
     sx, sy = model.lens_plane_position_m(lens_ij[:, 0], lens_ij[:, 1])
     lens_xy = np.stack([sx, sy], axis=1).astype(np.float64)
 
-    weight = np.concatenate(parts["w"])[order]
+    weight = _joined(parts, "w")[order].astype(np.float64)
     weight /= np.median(weight)
+    weight = weight.astype(np.float32)
+    pixel_index = _joined(parts, "pix")[order]
+    u_m = _joined(parts, "u")[order]
+    v_m = _joined(parts, "v")[order]
     basis_m = model.lattice.basis * (optics.pixel_pitch_m / optics.projection_factor)
     grid = default_grid(lens_xy, basis_m, oversample=grid_oversample)
     return LightFieldTable(
         width=model.width, height=model.height,
-        pixel_index=pix[order].astype(np.int32),
-        lens=lens.astype(np.int32).reshape(-1),
-        u_m=np.concatenate(parts["u"])[order].astype(np.float32),
-        v_m=np.concatenate(parts["v"])[order].astype(np.float32),
-        weight=weight.astype(np.float32),
+        pixel_index=pixel_index, lens=lens, u_m=u_m, v_m=v_m, weight=weight,
         lens_ij=lens_ij, lens_xy_m=lens_xy, basis_m=np.asarray(basis_m, dtype=np.float64),
         aperture_radius_m=float(radius * k_ap), micro_image_radius_px=float(radius),
         rim_px=float(rim_px), black_level=float(model.black_level), grid=grid)
+
+
+def _joined(parts: dict[str, list[np.ndarray]], name: str) -> np.ndarray:
+    """The concatenated parts of one column, which are let go."""
+    return np.concatenate(parts.pop(name))
 
 
 def shifted_table(table: LightFieldTable, devignetting: np.ndarray, shift_px: np.ndarray, *,
