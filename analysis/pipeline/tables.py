@@ -21,6 +21,8 @@ from analysis.formats.mapped_npz import release_pages
 from analysis.lightfield.table import (NORMALISATION, TABLE_FORMAT_VERSION, LightFieldTable, build_table, load_table,
                                        save_table, shifted_table)
 
+from .stages import trim_heap
+
 log = logging.getLogger(__name__)
 
 #: The depth fit's table keeps the micro-image rims (half a pixel beyond the aperture's image).
@@ -68,6 +70,7 @@ def get_table(calibration: Calibration, cache: Cache, *, grid_oversample: float 
         release_pages(calibration.devignetting)
         if path is not None:
             _save_quietly(table, path, cache)
+        trim_heap()  # the build's temporaries: 3 times the table
     return cache.put(key, table)
 
 
@@ -82,6 +85,20 @@ def save_normalisations(table: LightFieldTable, calibration: Calibration, cache:
     (and has a directory), so that a fresh process refocuses at full speed from its first exposure."""
     if cache.directory is not None and normalisation_keys(table, cache) != before:
         _save_quietly(table, table_cache_path(cache.directory, calibration, grid_oversample), cache)
+
+
+def release_refocus_pages(table: LightFieldTable, cache: Cache, *, columns: bool = True) -> None:
+    """Give back the pages of the refocus normalisations ``cache`` holds for ``table`` and, with
+    ``columns``, of the table's per-sample columns, where they are mapped from the disk cache
+    (:func:`analysis.lightfield.table.load_table`): read back from the file cache if used again.
+
+    Between the refocus stages and the depth fits, which read the raw image through the fit's own
+    table: an F01's refocus table and the ~90 normalisations of a survey and a fine stack hold 95 MB."""
+    if columns:
+        for column in (table.pixel_index, table.lens, table.u_m, table.v_m, table.weight):
+            release_pages(column)
+    for _, value in cache.entries(NORMALISATION, table.uid):
+        release_pages(value)
 
 
 def _save_quietly(table: LightFieldTable, path: Path, cache: Cache) -> None:
