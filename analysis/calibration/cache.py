@@ -165,4 +165,10 @@ def cached_calibration(white: WhiteImage, *, cache_dir: Path | None, serial: str
     except OSError as exc:
         # A read-only or full cache folder costs time on the next call, not this result.
         log.warning("could not write calibration cache %s (%s); continuing without it", path, exc)
+        return calibration
+    # The devignetting map as just written, mapped (43 MB an F01's, read again only to build tables).
+    mapped = map_members(path, ["devignetting"]).get("devignetting")
+    if mapped is not None and (mapped.shape, mapped.dtype) == (calibration.devignetting.shape,
+                                                               calibration.devignetting.dtype):
+        calibration = replace(calibration, devignetting=mapped)
     return calibration
