@@ -115,7 +115,7 @@ def test_the_cache_keeps_one_drifted_table_per_calibration(case):
 
 
 def test_released_pages_of_a_mapped_map_read_back_the_same(tmp_path):
-    from analysis.calibration.cache import release_pages
+    from analysis.formats.mapped_npz import release_pages
 
     data = np.arange(1 << 20, dtype=np.float32)
     np.save(tmp_path / "map.npy", data)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from dataclasses import replace
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from analysis.calibration.cache import CACHE_VERSION, cache_path, load_calibrati
 from analysis.calibration.white_choice import select_white_image
 from analysis.camera.model import CameraModel, Lattice
 from analysis.errors import CalibrationError, CameraMismatchError, NoWhiteImageError
+from analysis.formats.mapped_npz import is_mapped
 from analysis.calibration.lattice_fit import balance_channels, fit_lattice, lens_centroids
 from analysis.simulation.camera import SimulatedLens, simulated_camera_metadata, simulated_private_metadata
 from analysis.simulation.render import render_white_image
@@ -235,7 +237,7 @@ def test_cache_hit_skips_the_fit(white_folder, tmp_path):
     assert second.devignetting.dtype == np.float32
     np.testing.assert_array_equal(second.devignetting, first.devignetting)
     # Mapped from the cache file, not read: only building a look-up table touches it.
-    assert isinstance(second.devignetting.base, np.memmap) and not second.devignetting.flags.writeable
+    assert is_mapped(second.devignetting) and not second.devignetting.flags.writeable
     assert (second.white_sha1, second.white_name, second.fit_n_lenses) == \
         (first.white_sha1, first.white_name, first.fit_n_lenses)
     assert not any(p.name.endswith(".tmp") for p in path.parent.iterdir())
@@ -295,9 +297,11 @@ def test_compressed_cache_is_read_whole(white_folder, tmp_path):
     path = cache_path(tmp_path / "cache", SERIAL, first.white_sha1)
     with np.load(path) as npz:
         members = {k: npz[k] for k in npz.files}
-    np.savez_compressed(path, **members)
+    # Replaced, not rewritten in place: ``first`` maps the file (a map over a truncated file faults).
+    np.savez_compressed(tmp_path / "compressed.npz", **members)
+    os.replace(tmp_path / "compressed.npz", path)
     again = read_calibration(path, white_sha1=first.white_sha1)
-    assert not isinstance(again.devignetting.base, np.memmap)
+    assert not is_mapped(again.devignetting)
     np.testing.assert_array_equal(again.devignetting, first.devignetting)
 
 

@@ -13,6 +13,7 @@ from analysis.camera.model import CameraModel, green_mask
 from analysis.errors import CalibrationError, ParameterError
 from analysis.camera.image_grid import ImageGrid
 from analysis.cache import Cache
+from analysis.formats.mapped_npz import is_mapped, release_pages
 from analysis.lightfield.table import build_table, build_table_from_model, load_table, save_table
 from analysis.simulation.camera import simulated_camera_metadata
 from analysis.simulation.render import render_white_image
@@ -109,6 +110,12 @@ def test_save_and_load_round_trip(tmp_path, table):
     for name in ("width", "height", "aperture_radius_m", "micro_image_radius_px", "rim_px", "black_level", "uid"):
         assert getattr(back, name) == getattr(table, name), name
     assert back.grid == table.grid
+    # The per-sample columns are mapped from the file, aligned and writable (what numba compiles for).
+    for name in ("pixel_index", "lens", "u_m", "v_m", "weight"):
+        column = getattr(back, name)
+        assert is_mapped(column) and column.flags.aligned and column.flags.writeable, name
+        release_pages(column)
+        assert np.array_equal(column, getattr(table, name)), name  # read back from the file
     assert len(fresh) == 1   # this table's normalisation only
     assert np.array_equal(fresh.get(("normalisation", table.uid, b"key")), np.arange(6).reshape(3, 2))
 

@@ -7,10 +7,7 @@ from __future__ import annotations
 
 import json
 import logging
-import math
-import mmap
 import re
-import struct
 import zipfile
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -22,6 +19,7 @@ from analysis.cache import remove_older_versions
 from analysis.camera.model import CameraModel, Lattice, Optics
 from analysis.errors import CalibrationError
 from analysis.formats.atomic_write import atomic_path
+from analysis.formats.mapped_npz import map_members
 from analysis.formats.whites import WhiteImage, load_white_images
 
 from .calibrate import Calibration, calibrate
@@ -73,7 +71,9 @@ def read_calibration(path: Path, *, white_sha1: str | None = None) -> Calibratio
     try:
         with np.load(path, allow_pickle=False) as npz:
             header: dict[str, Any] = json.loads(str(npz["header"]))
-            mapped = _mapped_member(path, "devignetting")
+            # Mapped: the map (43 MB for an F01) only builds look-up tables, so a worker whose tables
+            # come from their own cache never reads it into memory.
+            mapped = map_members(path, ["devignetting"]).get("devignetting")
             devignetting = npz["devignetting"] if mapped is None else mapped
         if header.get("version") != CACHE_VERSION:
             raise CalibrationError(f"{path} has cache version {header.get('version')}, not {CACHE_VERSION}; "
@@ -99,52 +99,6 @@ def read_calibration(path: Path, *, white_sha1: str | None = None) -> Calibratio
     except (OSError, EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile) as exc:
         raise CalibrationError(f"calibration file {path} is unreadable ({type(exc).__name__}: {exc}); "
                                "delete it, or let load_calibration rebuild it") from None
-
-
-def _mapped_member(path: Path, name: str) -> np.ndarray | None:
-    """A read-only memory map of the ``.npy`` member ``name`` of an ``.npz`` file that stores it
-    uncompressed (as :func:`save_calibration` writes it), else None.
-
-    The devignetting map (43 MB for an F01) only builds look-up tables; mapped, a worker whose
-    tables come from their own cache never reads it into memory.
-    """
-    with zipfile.ZipFile(path) as zf:
-        info = zf.getinfo(name + ".npy")
-    if info.compress_type != zipfile.ZIP_STORED:
-        return None
-    with open(path, "rb") as fh:
-        fh.seek(info.header_offset)
-        local = fh.read(30)  # the zip local file header: its name and extra field lengths at 26
-        if len(local) < 30 or local[:4] != b"PK\x03\x04":
-            return None
-        name_len, extra_len = struct.unpack("<HH", local[26:30])
-        fh.seek(info.header_offset + 30 + name_len + extra_len)
-        version = np.lib.format.read_magic(fh)
-        read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                       else np.lib.format.read_array_header_2_0)
-        shape, fortran, dtype = read_header(fh)
-        offset = fh.tell()
-    if dtype.hasobject or offset + dtype.itemsize * math.prod(shape) > path.stat().st_size:
-        return None
-    return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape,
-                     order="F" if fortran else "C").view(np.ndarray)
-
-
-def release_pages(array: np.ndarray) -> None:
-    """Let the system drop the pages of a file-mapped array (the devignetting map, as
-    :func:`load_calibration` maps it) from this process's memory once it has been read: they stay
-    in the file cache and are read back if the array is used again. Nothing for arrays in memory.
-
-    Read once per exposure's drift (to build a drifted table), the map's 43 MB otherwise stay
-    resident for the life of the process."""
-    base = array
-    while base is not None and not isinstance(base, mmap.mmap):
-        base = getattr(base, "base", None)
-    if base is not None and hasattr(mmap, "MADV_DONTNEED"):
-        try:
-            base.madvise(mmap.MADV_DONTNEED)
-        except (OSError, ValueError):  # a closed map, or a system that refuses: only memory is at stake
-            pass
 
 
 def load_calibration(source: Path, metadata: dict, *, serial: str | None = None,
@@ -211,4 +165,10 @@ def cached_calibration(white: WhiteImage, *, cache_dir: Path | None, serial: str
     except OSError as exc:
         # A read-only or full cache folder costs time on the next call, not this result.
         log.warning("could not write calibration cache %s (%s); continuing without it", path, exc)
+        return calibration
+    # The devignetting map as just written, mapped (43 MB an F01's, read again only to build tables).
+    mapped = map_members(path, ["devignetting"]).get("devignetting")
+    if mapped is not None and (mapped.shape, mapped.dtype) == (calibration.devignetting.shape,
+                                                               calibration.devignetting.dtype):
+        calibration = replace(calibration, devignetting=mapped)
     return calibration

@@ -21,7 +21,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
-from scipy.optimize import least_squares
 
 from analysis.camera.model import Lattice
 from analysis.errors import CalibrationError
@@ -179,6 +178,7 @@ def _coarse_frequencies(z: np.ndarray, grid: tuple[int, int], use: np.ndarray, s
     A frequency error dG turns the block phase by 2 pi dG . stride from one block to the next,
     unambiguous while |dG| < 1 / (2 stride): about 13 % in pitch or 0.1 rad in rotation.
     """
+    from scipy.optimize import least_squares  # here: 11 MB that a worker with a cached calibration never needs
     zg = z.reshape(grid[0], grid[1], 3)
     ug = use.reshape(grid)
     both_x = (ug[:, 1:] & ug[:, :-1])[..., None]
@@ -264,6 +264,7 @@ def fit_lattice(white: np.ndarray, seed: Lattice, *, black_level: float = 168.0,
         If the image is too small, shows no micro-image pattern near the seed, or the fit
         does not converge.
     """
+    from scipy.optimize import least_squares  # here: 11 MB that a worker with a cached calibration never needs
     white = np.asarray(white)
     if white.ndim != 2 or min(white.shape) < 2 * _BLOCK_PX:
         raise CalibrationError(

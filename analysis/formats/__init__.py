@@ -8,6 +8,7 @@
 - ``whites``: white images (``MOD_nnnn.RAW``/``.TXT``) and the camera's ``data.C.N`` bundles.
 - ``file_report``: what ``plenodust inspect`` prints about any of those files.
 - ``atomic_write``: temp file, fsync, rename: nothing half-written.
+- ``mapped_npz``: ``.npz`` members memory-mapped instead of read (the calibration and table caches).
 - ``particle_table``: the particle table on disk (CSV, NeXus HDF5).
 
 Hands exposures and white images to :mod:`analysis.calibration` and :mod:`analysis.pipeline`.

@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import uuid
+import zipfile
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -27,6 +28,7 @@ import numpy as np
 from numba import njit, prange
 
 from analysis.formats.atomic_write import atomic_path
+from analysis.formats.mapped_npz import map_members, save_aligned
 from analysis.camera.model import CameraModel
 from analysis.errors import CalibrationError, ParameterError
 from analysis.camera.image_grid import ImageGrid
@@ -35,7 +37,8 @@ if TYPE_CHECKING:
     from analysis.cache import Cache
 
 # Bump when the saved layout changes, so stale caches are rebuilt, not misread.
-TABLE_FORMAT_VERSION = 6
+# 7: members aligned for memory mapping (analysis.formats.mapped_npz).
+TABLE_FORMAT_VERSION = 7
 
 # Empty lens sites kept around the lattice so that shifted samples near the edge still land
 # on the site grid (the simulated f/2 camera shifts by up to about 4 lenses over 0.987 ... 1.013).
@@ -287,8 +290,8 @@ def build_table_from_model(model: CameraModel, devignetting: np.ndarray | None =
         u = -dx * k_ap
         v = -dy * k_ap
         if devignetting is not None:
-            w = devignetting[rr, cc].astype(np.float64)
-            good = w >= min_weight
+            w = devignetting[rr, cc]  # its own dtype until the median (exact in float64 then)
+            good = w.astype(np.float64) >= min_weight
             rr, cc, i, j, u, v, w = rr[good], cc[good], i[good], j[good], u[good], v[good], w[good]
         elif p_exit is None:
             w = np.ones(rr.size)
@@ -296,44 +299,58 @@ def build_table_from_model(model: CameraModel, devignetting: np.ndarray | None =
             # cos^4 of the ray from aperture point (u, v) to the lens centre (s, t).
             s, t = model.lens_plane_position_m(i, j)
             w = (p_exit * p_exit / (p_exit * p_exit + (s - u) ** 2 + (t - v) ** 2)) ** 2
-        parts["pix"].append((rr * model.width + cc).astype(np.int64))
-        parts["i"].append(i)
-        parts["j"].append(j)
-        parts["u"].append(u)
-        parts["v"].append(v)
+        # Kept in the table's own dtypes (the same values as casting at the end): a full-size
+        # table's parts in int64 and float64 took twice the memory, 230 MB for the depth fit's.
+        parts["pix"].append((rr * model.width + cc).astype(np.int32))
+        parts["i"].append(i.astype(np.int32))
+        parts["j"].append(j.astype(np.int32))
+        parts["u"].append(u.astype(np.float32))
+        parts["v"].append(v.astype(np.float32))
         parts["w"].append(w)
 
-    pix = np.concatenate(parts["pix"])
-    if pix.size == 0:
+    if sum(part.size for part in parts["pix"]) == 0:
         raise CalibrationError("no green pixel lies inside a micro-image; the lattice misses the sensor, "
                                "re-run the calibration")
-    li = np.concatenate(parts["i"])
-    lj = np.concatenate(parts["j"])
+    li = _joined(parts, "i")
+    lj = _joined(parts, "j")
     imin, jmin = int(li.min()), int(lj.min())
     ni = int(li.max()) - imin + 1
-    key = (lj - jmin) * ni + (li - imin)
+    key = (lj.astype(np.int64) - jmin) * ni + (li - imin)
+    del li, lj
     # Samples ordered by lens (row j, then i): neighbours in memory are neighbours on the lattice.
     order = np.argsort(key, kind="stable")
     key = key[order]
-    lens_keys, lens = np.unique(key, return_inverse=True)
+    # Lens numbers in key order (what np.unique(key, return_inverse=True) gives, without its copies).
+    first = np.empty(key.size, dtype=bool)
+    first[0] = True
+    np.not_equal(key[1:], key[:-1], out=first[1:])
+    lens_keys = key[first]
+    lens = np.cumsum(first, dtype=np.int32)
+    lens -= 1
+    del key, first
     lens_ij = np.stack([lens_keys % ni + imin, lens_keys // ni + jmin], axis=1).astype(np.int32)
     sx, sy = model.lens_plane_position_m(lens_ij[:, 0], lens_ij[:, 1])
     lens_xy = np.stack([sx, sy], axis=1).astype(np.float64)
 
-    weight = np.concatenate(parts["w"])[order]
+    weight = _joined(parts, "w")[order].astype(np.float64)
     weight /= np.median(weight)
+    weight = weight.astype(np.float32)
+    pixel_index = _joined(parts, "pix")[order]
+    u_m = _joined(parts, "u")[order]
+    v_m = _joined(parts, "v")[order]
     basis_m = model.lattice.basis * (optics.pixel_pitch_m / optics.projection_factor)
     grid = default_grid(lens_xy, basis_m, oversample=grid_oversample)
     return LightFieldTable(
         width=model.width, height=model.height,
-        pixel_index=pix[order].astype(np.int32),
-        lens=lens.astype(np.int32).reshape(-1),
-        u_m=np.concatenate(parts["u"])[order].astype(np.float32),
-        v_m=np.concatenate(parts["v"])[order].astype(np.float32),
-        weight=weight.astype(np.float32),
+        pixel_index=pixel_index, lens=lens, u_m=u_m, v_m=v_m, weight=weight,
         lens_ij=lens_ij, lens_xy_m=lens_xy, basis_m=np.asarray(basis_m, dtype=np.float64),
         aperture_radius_m=float(radius * k_ap), micro_image_radius_px=float(radius),
         rim_px=float(rim_px), black_level=float(model.black_level), grid=grid)
+
+
+def _joined(parts: dict[str, list[np.ndarray]], name: str) -> np.ndarray:
+    """The concatenated parts of one column, which are let go."""
+    return np.concatenate(parts.pop(name))
 
 
 def shifted_table(table: LightFieldTable, devignetting: np.ndarray, shift_px: np.ndarray, *,
@@ -439,6 +456,8 @@ def default_grid(lens_xy_m: np.ndarray, basis_m: np.ndarray, *, oversample: floa
 
 
 _SAVED_ARRAYS = ("pixel_index", "lens", "u_m", "v_m", "weight", "lens_ij", "lens_xy_m", "basis_m")
+#: Arrays of a sample each: mapped from the file by :func:`load_table`.
+_MAPPED_ARRAYS = ("pixel_index", "lens", "u_m", "v_m", "weight")
 _SAVED_SCALARS = ("width", "height", "aperture_radius_m", "micro_image_radius_px", "rim_px", "black_level", "uid")
 #: Kind of the cache entries that :func:`save_table` keeps with a table (:mod:`analysis.lightfield.refocus`).
 NORMALISATION = "normalisation"
@@ -462,12 +481,17 @@ def save_table(table: LightFieldTable, path: str | Path, *, cache: Cache | None 
         payload[f"norm{n}_key"] = np.frombuffer(key[2], dtype=np.uint8)
         payload[f"norm{n}_value"] = value
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, **payload)
+        save_aligned(fh, payload, release=True)
     return path
 
 
 def load_table(path: str | Path, *, cache: Cache | None = None) -> LightFieldTable:
     """Read a table written by :func:`save_table`; its refocus normalisations go into ``cache``.
+
+    The per-sample arrays and the normalisations are mapped from the file, not read: an exposure
+    reads the normalisations of its own alphas only, and the depth fit's table of a drifted lattice
+    gives back the pages of the undrifted one once it has been derived from it
+    (:func:`analysis.pipeline.tables.drifted_fit_table`).
 
     Raises
     ------
@@ -482,15 +506,19 @@ def load_table(path: str | Path, *, cache: Cache | None = None) -> LightFieldTab
                 raise CalibrationError(
                     f"look-up table {path} has format {int(data['format_version'])}, this version reads "
                     f"{TABLE_FORMAT_VERSION}; delete it so it is rebuilt from the calibration")
-            arrays = {name: data[name] for name in _SAVED_ARRAYS}
+            n_norms = 0
+            while f"norm{n_norms}_key" in data.files:
+                n_norms += 1
+            mapped = map_members(path, [*_MAPPED_ARRAYS, *(f"norm{n}_value" for n in range(n_norms))], mode="c")
+
+            def read(name: str) -> np.ndarray:
+                array = mapped.get(name)
+                return array if array is not None and array.flags.aligned else data[name]
+            arrays = {name: read(name) for name in _SAVED_ARRAYS}
             scalars = {name: data[name].item() for name in _SAVED_SCALARS}
             gw, gh, gx, gy, gs = data["grid"].tolist()
-            norms = {}
-            n = 0
-            while f"norm{n}_key" in data.files:
-                norms[data[f"norm{n}_key"].tobytes()] = data[f"norm{n}_value"]
-                n += 1
-    except (OSError, KeyError, ValueError) as exc:
+            norms = {data[f"norm{n}_key"].tobytes(): read(f"norm{n}_value") for n in range(n_norms)}
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
         raise CalibrationError(f"cannot read look-up table {path} ({exc}); delete it so it is rebuilt "
                                "from the calibration") from exc
     table = LightFieldTable(

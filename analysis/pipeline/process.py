@@ -45,7 +45,6 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from analysis.cache import Cache
-from analysis.calibration.cache import release_pages
 from analysis.calibration.calibrate import Calibration
 from analysis.calibration.drift import LatticeDrift, block_phases, estimate_drift
 from analysis.camera.coordinates import Calibration3D, ThinLensCalibration, coordinate_warnings, to_physical
@@ -62,6 +61,7 @@ from analysis.detection.rejections import Rejections
 from analysis.errors import CameraMismatchError, MetadataError
 from analysis.formats.exposure import Exposure, read_exposure
 from analysis.formats.frame_metadata import shot_time_s
+from analysis.formats.mapped_npz import release_pages
 from analysis.lightfield.background import BackgroundMap, estimate_background
 from analysis.lightfield.refocus import default_alphas, products, refocus_stack, subaperture_image
 from analysis.lightfield.samples import background_and_noise, select_samples
@@ -71,8 +71,8 @@ from .candidates import locate, product_threshold
 from .depth_range import SURVEY_GRID, edge_maxima, lattice_step, range_of_peaks, survey_alphas
 from .params import PipelineParams
 from .result import Result
-from .stages import Progress, StageClock
-from .tables import drifted_fit_table, get_table, normalisation_keys, save_normalisations
+from .stages import Progress, StageClock, trim_heap
+from .tables import drifted_fit_table, get_table, normalisation_keys, release_refocus_pages, save_normalisations
 
 log = logging.getLogger(__name__)
 
@@ -204,6 +204,8 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                             f"{alphas[-1]:.4f}; check the exposure and the threshold")
             return finish(_no_peaks(), None, None, sub, threshold)
         limits, alphas = (alphas[0], alphas[-1]), found
+        release_refocus_pages(table, cache, columns=False)  # the survey's normalisations: done with
+        trim_heap()  # and its stack
     else:
         limits = (alphas[0], alphas[-1])
     with clock.stage("refocus"):
@@ -217,6 +219,8 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     samples = product = None
     if not keep_stack:
         stack = None
+    release_refocus_pages(table, cache)  # until another detection pass refocuses (below)
+    trim_heap()
     if params.user_range:
         low, high = edge_maxima(tracks.brightness)
         if low.size + high.size:
@@ -234,6 +238,8 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                 if found is None:
                     break
                 peaks, tracks, fit = found
+            release_refocus_pages(table, cache)
+            trim_heap()
         if params.deblend and len(peaks) > 1:
             with clock.stage("deblend"):
                 peaks, fit = deblend(fitter, peaks, fit)

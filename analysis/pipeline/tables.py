@@ -15,11 +15,14 @@ from pathlib import Path
 import numpy as np
 
 from analysis.cache import Cache, remove_older_versions
-from analysis.calibration.cache import release_pages
 from analysis.calibration.calibrate import Calibration
 from analysis.calibration.drift import LatticeDrift
+from analysis.errors import CalibrationError
+from analysis.formats.mapped_npz import release_pages
 from analysis.lightfield.table import (NORMALISATION, TABLE_FORMAT_VERSION, LightFieldTable, build_table, load_table,
                                        save_table, shifted_table)
+
+from .stages import trim_heap
 
 log = logging.getLogger(__name__)
 
@@ -66,8 +69,9 @@ def get_table(calibration: Calibration, cache: Cache, *, grid_oversample: float 
     if table is None or (table.height, table.width) != (calibration.model.height, calibration.model.width):
         table = build_table(calibration, grid_oversample=grid_oversample, rim_px=rim_px, min_weight=MIN_WEIGHT)
         release_pages(calibration.devignetting)
-        if path is not None:
-            _save_quietly(table, path, cache)
+        if path is not None and _save_quietly(table, path, cache):
+            table = _mapped_again(table, path, cache)
+        trim_heap()  # the build's temporaries: 3 times the table
     return cache.put(key, table)
 
 
@@ -81,16 +85,45 @@ def save_normalisations(table: LightFieldTable, calibration: Calibration, cache:
     """Write the table again with its normalisations when ``cache`` holds any beyond ``before``
     (and has a directory), so that a fresh process refocuses at full speed from its first exposure."""
     if cache.directory is not None and normalisation_keys(table, cache) != before:
-        _save_quietly(table, table_cache_path(cache.directory, calibration, grid_oversample), cache)
+        path = table_cache_path(cache.directory, calibration, grid_oversample)
+        if _save_quietly(table, path, cache):
+            _mapped_again(table, path, cache)  # the new normalisations too
 
 
-def _save_quietly(table: LightFieldTable, path: Path, cache: Cache) -> None:
+def release_refocus_pages(table: LightFieldTable, cache: Cache, *, columns: bool = True) -> None:
+    """Give back the pages of the refocus normalisations ``cache`` holds for ``table`` and, with
+    ``columns``, of the table's per-sample columns, where they are mapped from the disk cache
+    (:func:`analysis.lightfield.table.load_table`): read back from the file cache if used again.
+
+    Between the refocus stages and the depth fits, which read the raw image through the fit's own
+    table: an F01's refocus table and the ~90 normalisations of a survey and a fine stack hold 95 MB."""
+    if columns:
+        for column in (table.pixel_index, table.lens, table.u_m, table.v_m, table.weight):
+            release_pages(column)
+    for _, value in cache.entries(NORMALISATION, table.uid):
+        release_pages(value)
+
+
+def _save_quietly(table: LightFieldTable, path: Path, cache: Cache) -> bool:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         save_table(table, path, cache=cache)
         remove_older_versions(path.parent, path.name.split(".lut.v")[0] + ".lut.v", TABLE_FORMAT_VERSION)
     except OSError as exc:
         log.warning("could not write look-up table cache %s (%s); continuing without it", path, exc)
+        return False
+    return True
+
+
+def _mapped_again(table: LightFieldTable, path: Path, cache: Cache) -> LightFieldTable:
+    """The table (and its normalisations in ``cache``) as just written to ``path``, mapped from it
+    instead of held in memory, so that a worker that built them holds only what a worker that reads
+    them holds (:func:`analysis.lightfield.table.load_table`); the table itself if it cannot be read."""
+    try:
+        return load_table(path, cache=cache)
+    except CalibrationError as exc:
+        log.warning("look-up table cache %s unreadable just after writing it (%s); keeping it in memory", path, exc)
+        return table
 
 
 #: A drift is applied in steps of this (pixels; radians for the rotation, which moves the sensor's
@@ -106,7 +139,8 @@ def drifted_fit_table(calibration: Calibration, cache: Cache, drift: LatticeDrif
 
     ``cache`` keeps one drifted table per calibration, the last one asked for: a run's lattice
     drifts slowly, and each drifted table holds 55 MB (an F01's) that older drifts would keep
-    until the cache's budget pushed them out."""
+    until the cache's budget pushed them out. The undrifted table's columns that the drifted one
+    replaces give their pages back when they are mapped from the disk cache."""
     base = get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
     if drift is None:
         return base
@@ -129,4 +163,6 @@ def drifted_fit_table(calibration: Calibration, cache: Cache, drift: LatticeDrif
     table = shifted_table(base, calibration.devignetting, shift, m_per_px=optics.pixel_pitch_m / optics.projection_factor,
                           patch=calibration.repaired_defects)
     release_pages(calibration.devignetting)
+    for column in (base.u_m, base.v_m, base.weight):  # mapped from the cache (load_table): 55 MB an F01's
+        release_pages(column)
     return cache.put(key, (q, table))[1]
