@@ -11,6 +11,7 @@ from scipy.ndimage import median_filter
 
 from analysis.cache import Cache
 from analysis.calibration.cache import load_calibration
+from analysis.calibration.calibrate import repaired
 from analysis.calibration.drift import LatticeDrift
 from analysis.formats.exposure import read_exposure
 from analysis.lightfield.background import BackgroundMap, estimate_background
@@ -94,7 +95,8 @@ def test_drifted_table_reads_the_white_image_with_its_defects_repaired(case):
     optics = calibration.model.optics
     m_per_px = optics.pixel_pitch_m / optics.projection_factor
     patched = shifted_table(fit, calibration.devignetting, shift, m_per_px=m_per_px, patch=calibration.repaired_defects)
-    copied = shifted_table(fit, calibration.devignetting_without_defects, shift, m_per_px=m_per_px)
+    copied = shifted_table(fit, repaired(calibration.devignetting, calibration.defects.index), shift,
+                           m_per_px=m_per_px)
     for name in ("u_m", "v_m", "weight", "lens_xy_m"):
         assert np.array_equal(getattr(patched, name), getattr(copied, name)), name
     assert patched.weight.dtype == np.float32 and patched.u_m.dtype == np.float32

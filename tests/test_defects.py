@@ -187,7 +187,7 @@ def test_defective_pixels_of_the_white_image_are_repaired_for_reading_between_pi
     clean = clean * channel_response_map(512, 512, WHITE_RESPONSE) * np.float32(2400.0 / (4095.0 - 168.0))
     rows, cols = np.divmod(cal.defects.index, 512)
     lit = clean[rows, cols] > 0.3 * clean.max()
-    fixed = cal.devignetting_without_defects
+    fixed = repaired(cal.devignetting, cal.defects.index)
     assert fixed is not cal.devignetting and np.array_equal(np.delete(fixed.ravel(), cal.defects.index),
                                                             np.delete(cal.devignetting.ravel(), cal.defects.index))
     before = np.abs(cal.devignetting[rows, cols] - clean[rows, cols])[lit]

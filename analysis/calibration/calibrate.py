@@ -95,20 +95,12 @@ class Calibration:
         return None if self.defects is None or len(self.defects) == 0 else self.defects.mask
 
     @cached_property
-    def devignetting_without_defects(self) -> np.ndarray:
-        """The devignetting map with each defective pixel replaced by the median of its nearest pixels of
-        the same Bayer colour that are not defective (the map itself when there are none): for reading
-        the white image between pixels (a drifted lattice's weights), where a hot pixel would leak into
-        its neighbours."""
-        if self.defects is None or len(self.defects) == 0:  # (not defect_mask: a 10 MB map to say so)
-            return self.devignetting
-        return repaired(self.devignetting, self.defects.index)
-
-    @cached_property
     def repaired_defects(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(index, values)``: the defective pixels (flat, sorted) and their values in
-        :attr:`devignetting_without_defects`, for readers of the white image that patch those few
-        pixels instead of holding a repaired copy of the whole map (43 MB for an F01)."""
+        """``(index, values)``: the defective pixels (flat, sorted) and the values :func:`repaired`
+        gives them (the median of their nearest sound pixels of the same Bayer colour), for readers
+        of the white image between pixels (a drifted lattice's weights, where a hot pixel would leak
+        into its neighbours) that patch those few pixels instead of holding a repaired copy of the
+        whole map (43 MB for an F01)."""
         if self.defects is None or len(self.defects) == 0:
             return np.empty(0, np.int64), np.empty(0, self.devignetting.dtype)
         index = np.sort(np.asarray(self.defects.index, dtype=np.int64))
