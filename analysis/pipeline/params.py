@@ -77,7 +77,9 @@ class PipelineParams:
     min_intensity_sigma, max_fit_residual
         Refined particles whose fitted pixel intensity is below this many raw-noise sigmas, or
         whose forward-model misfit per pixel exceeds this fraction of that intensity, are
-        dropped: noise, or a particle whose depth lies outside the alpha range.
+        dropped: noise, a particle whose depth lies outside the alpha range, or light a brighter
+        neighbour's model leaves. The fits on the way, which still carry their neighbours' light,
+        may misfit 1.4 times as much (:data:`analysis.depth.quality.FIT_RESIDUAL_SLACK`).
     pixel_size_mm, depth_per_alpha_mm, reference_alpha, reference_z_mm
         A user calibration of the physical coordinates (:class:`UserCalibration`); when
         ``pixel_size_mm`` and ``depth_per_alpha_mm`` are None the thin-lens model of the
@@ -102,7 +104,7 @@ class PipelineParams:
     refine: bool = True
     refine_alpha_range: float = 0.004
     min_intensity_sigma: float = 8.0
-    max_fit_residual: float = 0.35
+    max_fit_residual: float = 0.25
     shadow_probe: float = 0.0065
     passes: int = 2
     maxima_half_slices: int = 2

@@ -52,7 +52,7 @@ from analysis.camera.image_grid import ImageGrid
 from analysis.camera.model import CameraModel
 from analysis.depth.deblend import deblend, split_shared
 from analysis.depth.prior import apply_depth_prior
-from analysis.depth.quality import drop_extended
+from analysis.depth.quality import FIT_RESIDUAL_SLACK, drop_extended, drop_misfits
 from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
 from analysis.depth.refine import (COARSE_LATERAL_PITCHES, COARSE_TEMPERATURE, PROBE_RESIDUAL,
                                    RayFitter, inside, outshines_misfit, refine_peaks, residual_image)
@@ -191,7 +191,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         coarse=FitGrid(depths=params.fit_depths, lateral_pitches=COARSE_LATERAL_PITCHES,
                        positions=params.fit_lateral, pixel_points=1, temperature=COARSE_TEMPERATURE),
         min_intensity=params.min_intensity_sigma * max(samples.sigma, 0.5),
-        max_residual=params.max_fit_residual, merge_radius_px=params.link_radius_px,
+        max_residual=FIT_RESIDUAL_SLACK * params.max_fit_residual, merge_radius_px=params.link_radius_px,
         merge_alpha=params.merge_slices * (float(alphas[1] - alphas[0]) if params.user_range
                                            else lattice_step(params.n_slices)),
         cache=cache, rejected=rejected, saturation=model.white_level,
@@ -251,6 +251,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                 peaks, fit = apply_depth_prior(fitter, peaks, fit)
         with clock.stage("quality"):
             peaks, fit, share = drop_extended(fitter, peaks, fit)
+            peaks, fit, share = drop_misfits(fitter, peaks, fit, share, limit=params.max_fit_residual)
             quality = {"leftover": share}
     if len(peaks) == 0:
         if len(tracks):
