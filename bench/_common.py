@@ -1,8 +1,9 @@
-"""Helpers the benchmark scripts share: best-of timing and peak memory."""
+"""Helpers the benchmark scripts share: best-of timing, peak memory, and a check for disk space."""
 
 from __future__ import annotations
 
 import resource
+import shutil
 import time
 from pathlib import Path
 from typing import Callable
@@ -32,3 +33,16 @@ def peak_rss_mb(pid: int | str = "self") -> float:
     if pid != "self":
         return float("nan")
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def check_free_disk(path: Path, needed_gb: float, what: str) -> None:
+    """Stop with a clear message, before writing, when the file system of ``path`` (or of its
+    nearest existing parent) has less than ``needed_gb`` GiB free: a bench that fills the disk
+    halfway through leaves nothing useful, and other work on the machine fails with it."""
+    where = Path(path)
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    free = shutil.disk_usage(where).free / 2 ** 30
+    if free < needed_gb:
+        raise SystemExit(f"{what} needs about {needed_gb:.1f} GiB free under {where}, but {free:.1f} GiB are: "
+                         "free some space, or give --work a folder on a larger disk")

@@ -35,6 +35,7 @@ sys.path.insert(0, str(ROOT))
 os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".cache" / "numba"))
 
 import numpy as np  # noqa: E402
+from _common import check_free_disk  # noqa: E402
 
 from analysis.simulation.scoring import BLUR_BINS, Score, depth_floor, score  # noqa: E402
 from analysis.cache import Cache  # noqa: E402
@@ -75,6 +76,8 @@ def prepare_case(work: Path, scenario: str, seed: int, size: int, centre_z: floa
     folder = work / (f"{scenario}-{seed}-{size}" + ("" if centre_z is None else f"-z{centre_z:g}")
                      + (f"-{tag}" if tag else ""))
     if not (folder / "scenario.json").is_file():  # written last: a killed simulation is done again
+        # A full-frame case and its caches take about 0.6 + 0.5 GiB.
+        check_free_disk(work, 1.1 * (size / 3280) ** 2, f"simulating {folder.name}")
         subprocess.run([sys.executable, "-m", "service.cli.main", "simulate", "--scenario", scenario,
                         "--seed", str(seed), "--size", str(size), "--out", str(folder), "--quiet", *place,
                         *simulate_args], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)

@@ -33,6 +33,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from _common import check_free_disk  # noqa: E402
 from analysis.simulation.dynamics import Motion, simulate_motion  # noqa: E402
 from analysis.simulation.scenarios import Particles, Scenario, make_scenario  # noqa: E402
 
@@ -56,6 +57,8 @@ def run(args: argparse.Namespace) -> None:
     sim = work / "sim"
     motion = Motion(temperature_ev=args.temperature_ev)
     if not (sim / "scenario.json").exists():
+        # A full-frame shot takes 31 MiB, its calibration caches 80 MiB more.
+        check_free_disk(work, (args.shots * 0.031 + 0.1) * (args.size / 3280) ** 2, f"simulating {args.shots} shots")
         start = time.perf_counter()
         write_scenario(sim, "ball", args.seed, count=args.shots, size=args.size, centre_z_mm=57.4,
                        realism=Realism.typical() if args.realism else None, motion=motion, progress=lambda s: None)
