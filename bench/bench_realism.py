@@ -7,8 +7,9 @@ in a chamber), over the seeds: simulate a full-size exposure (``plenodust simula
 process it as the pipeline is (calibration cached, after a warm-up, in a fresh process:
 ``bench_pipeline.measure_case``), and score it against the truth. Prints per scene a table of
 recall, precision, depth error (linear fit and absolute) and lateral error in % of the mean 3D
-nearest-neighbour distance, the depth error over the ideal case's, false particles on a
-reflection, time per exposure and peak memory. Today's pipeline is told none of the effects.
+nearest-neighbour distance, the depth error over the ideal case's, the Cramér-Rao bound of depth
+(what the pixels of an isolated particle allow, :mod:`analysis.simulation.bound`), false particles
+on a reflection, time per exposure and peak memory. Today's pipeline is told none of the effects.
 
 Usage::
 
@@ -36,8 +37,9 @@ import numpy as np  # noqa: E402
 import bench_pipeline  # noqa: E402
 from analysis.formats.exposure import read_exposure  # noqa: E402
 from analysis.formats.particle_table import read_csv  # noqa: E402
+from analysis.simulation.bound import position_bound  # noqa: E402
 from analysis.simulation.chamber import ChamberLight  # noqa: E402
-from analysis.simulation.realism import EFFECTS  # noqa: E402
+from analysis.simulation.realism import EFFECTS, IDEAL_BLUR_PX  # noqa: E402
 from analysis.simulation.scoring import false_on_reflection  # noqa: E402
 
 @dataclass(frozen=True)
@@ -60,6 +62,8 @@ SCENES = {s.name: s for s in [
 ]}
 
 CASES = ("ideal", *EFFECTS, "all")
+#: True particles per case whose depth bound is computed (an isolated particle's, so a sample does).
+BOUND_PARTICLES = 12
 
 
 def simulate_args(case: str) -> list[str]:
@@ -80,8 +84,21 @@ def run(work: Path, scene: Scene, case: str, seed: int, size: int, repeat: int) 
     truth = read_csv(folder / "IMG_0001.truth.csv")
     model = read_exposure(folder / "IMG_0001.lfp").model
     row["on_reflection"] = false_on_reflection(found, truth, chamber, model, nn_mm=row["score"].nn_mm)
+    row["depth_bound_over_nn"] = depth_bound(truth, doc, seed) / row["score"].nn_mm
     row.update(scene=scene.name, case=case)
     return row
+
+
+def depth_bound(truth: dict, doc: dict, seed: int, count: int = BOUND_PARTICLES) -> float:
+    """RMS Cramér-Rao bound of depth (mm) of ``count`` of the case's true particles (their depth and
+    brightness, the case's blur and glow), each isolated near the axis
+    (:func:`analysis.simulation.bound.position_bound`)."""
+    z, b = np.asarray(truth["Z"], float), np.asarray(truth["brightness"], float)
+    pick = np.random.default_rng(seed).choice(z.size, size=min(count, z.size), replace=False)
+    blur_px = (doc.get("realism") or {}).get("parameters", {}).get("blur_px", IDEAL_BLUR_PX)
+    sigma = position_bound(z[pick], b[pick], blur_px=blur_px, background_dn=float(doc.get("background_dn", 0.0)),
+                           seed=seed).sigma_z_mm
+    return float(np.sqrt(np.nanmean(sigma ** 2)))
 
 
 def pct(v: float) -> str:
@@ -110,10 +127,10 @@ def pooled_rms(rows: list[dict], attr: str) -> float:
 def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[int], size: int) -> None:
     print(f"\nsensor {size} px, seeds {' '.join(map(str, seeds))}; recall, precision and errors in %; depth and "
           "lateral errors as % of the mean 3D nearest-neighbour distance (NN), pooled over seeds; true, found: "
-          "particles in view and found (sums over seeds); x ideal = pooled depth (fit) over the same scene's with ideal optics (the ideal case's; for all, scene's); on refl. = false particles on a reflection (sum over seeds); time "
+          "particles in view and found (sums over seeds); x ideal = pooled depth (fit) over the same scene's with ideal optics (the ideal case's; for all, scene's); bound = the Cramer-Rao bound of depth of an isolated particle of the scene (12 of its particles' depth and brightness, the case's blur and glow; analysis.simulation.bound), what no estimate from the pixels can beat; on refl. = false particles on a reflection (sum over seeds); time "
           "per exposure (calibration cached), peak memory of the worker.\n")
     head = (f"| {'case':12s} | {'true':>5s} | {'found':>5s} | {'recall':>9s} | {'precision':>9s} | {'depth fit':>9s} | {'abs dZ':>6s} | "
-            f"{'x ideal':>7s} | {'lateral':>7s} | {'on refl.':>8s} | {'time s':>9s} | {'peak MB':>7s} |")
+            f"{'x ideal':>7s} | {'bound':>5s} | {'lateral':>7s} | {'on refl.':>8s} | {'time s':>9s} | {'peak MB':>7s} |")
     for scene in scenes:
         mine = [r for r in rows if r["scene"] == scene]
         if not mine:
@@ -140,6 +157,7 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
                   f"| {span([r['score'].precision for r in rs]):>9s} | {pct(depth):>9s} "
                   f"| {pct(pooled_rms(rs, 'depth_abs_rms_over_nn')):>6s} "
                   f"| {('-' if not np.isfinite(ratio) else f'{ratio:.2f}'):>7s} "
+                  f"| {100 * float(np.sqrt(np.mean([r['depth_bound_over_nn'] ** 2 for r in rs]))):5.2f} "
                   f"| {pct(pooled_rms(rs, 'lateral_rms_over_nn')):>7s} "
                   f"| {sum(r['on_reflection'] for r in rs):8d} "
                   f"| {span([r['wall_s'] for r in rs], 1.0, 2):>9s} "
