@@ -68,11 +68,11 @@ class LinkParams:
         Floor of the measured step spread, as a fraction of the mean NN distance.
     rescue_gate_sigma : float
         After the assignment, a trajectory and a particle both left unlinked are linked up to this
-        many step spreads when each is the other's only candidate and the step beyond
-        ``gate_sigma`` runs along the radius from the cluster's centre (a particle hopping between
-        shells steps farther than thermal motion does, and radially; a trajectory whose particle
-        went unseen for a shot must not take a neighbour that reappears beside it, which on a
-        realistic run stepped 0.3-1 mm, mostly across the radius or in depth). 0 turns it off.
+        many step spreads when each is the other's only candidate, the step beyond ``gate_sigma``
+        runs along the radius from the cluster's centre, and the step stays within
+        ``max_step_nn`` of the NN distance: a particle hopping between shells steps farther than
+        thermal motion does, and radially, while a trajectory whose particle went unseen must not
+        take a neighbour that reappears beside it. 0 turns it off.
     from_before_last : bool
         A trajectory may also continue from the position before its last one, so one detection
         far off (most often in depth) is passed over rather than ending the trajectory.
@@ -272,7 +272,7 @@ class Linker:
         var[:, 2] += old.errors.extra_sigma_mm[rows] ** 2 + new_errors.extra_sigma_mm[cols] ** 2
         return var
 
-    def _gaps(self, t_old: np.ndarray, t_s: float) -> np.ndarray:
+    def _gaps(self, t_old: np.ndarray, t_s: float | np.ndarray) -> np.ndarray:
         """Shot intervals since each trajectory was seen, between 1 and ``memory + 1``."""
         return np.clip((t_s - t_old) / self.interval_s, 1.0, self.params.memory + 1.0)
 
@@ -333,7 +333,7 @@ class Linker:
         if self.params.predict and motion is not None:
             for i in range(len(predicted)):
                 predicted[i] = motion.predict(predicted[i:i + 1], t_from[i:i + 1], float(t_to[i]))[0]
-        gap = np.clip((t_to - t_from) / self.interval_s, 1.0, self.params.memory + 1.0)
+        gap = self._gaps(t_from, t_to)
         return np.sum((xyz_to - predicted) ** 2 / (np.asarray(self.step_mm)[None, :] * gap[:, None]) ** 2, axis=1)
 
     def _candidates(self, old: _Active, xyz: np.ndarray, errors: DepthErrors, t_s: float,
