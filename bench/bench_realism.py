@@ -90,15 +90,24 @@ def run(work: Path, scene: Scene, case: str, seed: int, size: int, repeat: int) 
 
 
 def depth_bound(truth: dict, doc: dict, seed: int, count: int = BOUND_PARTICLES) -> float:
-    """RMS Cramér-Rao bound of depth (mm) of ``count`` of the case's true particles (their depth and
-    brightness, the case's blur and glow), each isolated near the axis
-    (:func:`analysis.simulation.bound.position_bound`)."""
+    """RMS Cramér-Rao bound of depth (mm) of ``count`` of the case's true particles blurred over
+    two lens pitches or more (their depth and brightness, the case's blur and glow), each isolated
+    near the axis (:func:`analysis.simulation.bound.position_bound`); NaN without such particles.
+    Nearer focus the pixels leave the depth open over a range (the depth floor of
+    :func:`analysis.simulation.scoring.depth_floor`), where no unbiased bound applies."""
     z, b = np.asarray(truth["Z"], float), np.asarray(truth["brightness"], float)
-    pick = np.random.default_rng(seed).choice(z.size, size=min(count, z.size), replace=False)
+    off = np.flatnonzero(np.asarray(truth["blur_pitches"], float) >= 2.0)
+    if off.size == 0:
+        return math.nan
+    pick = np.random.default_rng(seed).choice(off, size=min(count, off.size), replace=False)
     blur_px = (doc.get("realism") or {}).get("parameters", {}).get("blur_px", IDEAL_BLUR_PX)
     sigma = position_bound(z[pick], b[pick], blur_px=blur_px, background_dn=float(doc.get("background_dn", 0.0)),
                            seed=seed).sigma_z_mm
     return float(np.sqrt(np.nanmean(sigma ** 2)))
+
+
+def pct2(v: float) -> str:
+    return "-" if v is None or not np.isfinite(v) else f"{100 * v:.2f}"
 
 
 def pct(v: float) -> str:
@@ -127,7 +136,7 @@ def pooled_rms(rows: list[dict], attr: str) -> float:
 def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[int], size: int) -> None:
     print(f"\nsensor {size} px, seeds {' '.join(map(str, seeds))}; recall, precision and errors in %; depth and "
           "lateral errors as % of the mean 3D nearest-neighbour distance (NN), pooled over seeds; true, found: "
-          "particles in view and found (sums over seeds); x ideal = pooled depth (fit) over the same scene's with ideal optics (the ideal case's; for all, scene's); bound = the Cramer-Rao bound of depth of an isolated particle of the scene (12 of its particles' depth and brightness, the case's blur and glow; analysis.simulation.bound), what no estimate from the pixels can beat; on refl. = false particles on a reflection (sum over seeds); time "
+          "particles in view and found (sums over seeds); x ideal = pooled depth (fit) over the same scene's with ideal optics (the ideal case's; for all, scene's); bound = the Cramer-Rao bound of depth of an isolated particle of the scene (RMS over 12 of its particles blurred over 2 lens pitches or more: their depth and brightness, the case's blur and glow; analysis.simulation.bound), what no estimate from the pixels can beat; on refl. = false particles on a reflection (sum over seeds); time "
           "per exposure (calibration cached), peak memory of the worker.\n")
     head = (f"| {'case':12s} | {'true':>5s} | {'found':>5s} | {'recall':>9s} | {'precision':>9s} | {'depth fit':>9s} | {'abs dZ':>6s} | "
             f"{'x ideal':>7s} | {'bound':>5s} | {'lateral':>7s} | {'on refl.':>8s} | {'time s':>9s} | {'peak MB':>7s} |")
@@ -157,7 +166,7 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
                   f"| {span([r['score'].precision for r in rs]):>9s} | {pct(depth):>9s} "
                   f"| {pct(pooled_rms(rs, 'depth_abs_rms_over_nn')):>6s} "
                   f"| {('-' if not np.isfinite(ratio) else f'{ratio:.2f}'):>7s} "
-                  f"| {100 * float(np.sqrt(np.mean([r['depth_bound_over_nn'] ** 2 for r in rs]))):5.2f} "
+                  f"| {pct2(float(np.sqrt(np.nanmean([r['depth_bound_over_nn'] ** 2 for r in rs])))):>5s} "
                   f"| {pct(pooled_rms(rs, 'lateral_rms_over_nn')):>7s} "
                   f"| {sum(r['on_reflection'] for r in rs):8d} "
                   f"| {span([r['wall_s'] for r in rs], 1.0, 2):>9s} "
