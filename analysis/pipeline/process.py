@@ -14,6 +14,8 @@ parameter object stored with every result::
               # behind each); a second pass over the raw image with the found particles' light off
     peaks   = deblend(fitter, peaks, fit)                 # analysis.depth.deblend: neighbours' light off
     peaks   = apply_depth_prior(fitter, peaks, fit)       # analysis.depth.prior: one-lens particles
+    peaks   = drop_misfits(drop_extended(...))            # analysis.depth.quality: light that does not
+              # converge to a point, and the final table's misfit limit (max_fit_residual)
     X, Y, Z = to_physical(peaks.x, peaks.y, peaks.alpha, grid, ...)  # analysis.camera.coordinates
 
 Each stage is also callable on its own; :func:`process` runs them all and :func:`process_many`
