@@ -62,6 +62,12 @@ def test_a_reflected_laser_band_yields_no_particle_and_hides_none():
     # Every particle found is a particle of the layer (some partly off the crop: not in the truth).
     assert _all_real(result, layer)
     assert np.all(result.particles["leftover"] < 0.5)
+    # The band's shot noise makes candidates; they are dropped before any fit, for the noise, and
+    # all of them lie on the band.
+    noise = result.rejected["reason"] == "noise"
+    assert noise.sum() >= 10
+    where = particle_truth(model, Particles(*(result.rejected[c][noise] for c in "XYZ"), np.zeros(noise.sum())))
+    assert np.all(ChamberLight(sources=(band,)).on_reflection(model, where.x_px, where.y_px))
 
 
 def test_particles_beyond_the_papers_alpha_range_are_found_by_default():

@@ -15,6 +15,8 @@ from .curves import Peaks
 
 #: Why a candidate was dropped (the ``reason`` column), and what that means.
 REASONS: dict[str, str] = {
+    "noise": ("it stands out too little from the local noise (the shot noise of bright extended light behind it, "
+              "a reflection or glow)"),
     "faint": "its fitted light is below the intensity threshold (noise, or the tail of another particle)",
     "fragment": "its fit lights a small part of one micro-image's worth of samples: a hot pixel or a fragment, "
                 "not a point source in view",

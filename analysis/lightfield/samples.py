@@ -49,6 +49,10 @@ class Samples:
         Samples with a value ``<= threshold`` were skipped (``-inf``: none), where the background
         has its typical level; elsewhere the threshold follows their own noise, which grows with
         the background behind them (shot noise).
+    noise : (float, float)
+        ``(a, b)`` of one sample's noise variance, ``a + b * signal`` (DN^2; signal: the extended
+        light on it, ``level * weight`` in DN), as the samples show it: shot noise grows with the
+        light behind it, and so does what the background model misses of that light.
     """
 
     ids: np.ndarray
@@ -57,6 +61,16 @@ class Samples:
     sigma: float
     threshold: float
     levels: np.ndarray
+    noise: tuple[float, float] = (0.0, 0.0)
+
+    def variance_ratio(self, level: np.ndarray) -> np.ndarray:
+        """How many times noisier (in variance) a sample is with extended light ``level`` behind
+        it (as in ``levels``) than with the typical one, ``background``; at least 1."""
+        a, b = self.noise
+        typical = a + b * max(self.background, 0.0)
+        if typical <= 0:
+            return np.ones(np.shape(level))
+        return np.maximum((a + b * np.maximum(np.asarray(level, dtype=np.float64), 0.0)) / typical, 1.0)
 
 
 def check_image(image: np.ndarray, table: LightFieldTable) -> np.ndarray:
@@ -127,7 +141,7 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
                                       float(centre) if noise_sigmas is not None else -np.inf,
                                       float(noise_sigmas or 0.0), noise[0], noise[1], numba.get_num_threads())
     return Samples(ids=ids, values=values, background=float(np.median(sub_levels)), sigma=float(sigma),
-                   threshold=float(threshold), levels=levels)
+                   threshold=float(threshold), levels=levels, noise=(float(noise[0]), float(noise[1])))
 
 
 def _noise_model(residual: np.ndarray, signal: np.ndarray, sigma: float) -> tuple[float, float]:

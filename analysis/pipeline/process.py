@@ -58,6 +58,7 @@ from analysis.depth.quality import FIT_RESIDUAL_SLACK, drop_extended, drop_misfi
 from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
 from analysis.depth.refine import (COARSE_LATERAL_PITCHES, COARSE_TEMPERATURE, PROBE_RESIDUAL,
                                    RayFitter, inside, outshines_misfit, refine_peaks, residual_image)
+from analysis.depth.table_index import table_index
 from analysis.detection.curves import Peaks, Tracks
 from analysis.detection.rejections import Rejections
 from analysis.errors import CameraMismatchError, MetadataError
@@ -69,7 +70,7 @@ from analysis.lightfield.refocus import default_alphas, products, refocus_stack,
 from analysis.lightfield.samples import background_and_noise, select_samples
 from analysis.lightfield.table import LightFieldTable
 
-from .candidates import locate, product_threshold
+from .candidates import below_local_noise, locate, product_threshold
 from .depth_range import SURVEY_GRID, edge_maxima, lattice_step, range_of_peaks, survey_alphas
 from .params import PipelineParams
 from .result import Result
@@ -198,9 +199,11 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                                            else lattice_step(params.n_slices)),
         cache=cache, rejected=rejected, saturation=model.white_level,
         blur_px=calibration.blur_px) if params.refine else None
+    # How much noisier than the typical ones each fit-table lens's samples are (extended light).
+    lens_noise = samples.variance_ratio(background.per_lens(fit_table))
     if not params.user_range:
         with clock.stage("survey"):
-            found = _survey(exposure.image, table, samples, sub, alphas, params, threshold, cache, fitter)
+            found = _survey(exposure.image, table, samples, sub, alphas, params, threshold, cache, fitter, lens_noise)
         if found is None:
             warnings.append(f"no particles found above the noise anywhere in alpha {alphas[0]:.4f} ... "
                             f"{alphas[-1]:.4f}; check the exposure and the threshold")
@@ -233,10 +236,12 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     fit, quality = None, {}
     if fitter is not None and len(peaks):
         with clock.stage("refine"):
+            peaks = _above_noise(fitter, peaks, lens_noise, threshold)
             peaks, fit = inside(fitter, *refine_peaks(fitter, peaks, shadow_probe=params.shadow_probe), limits)
         with clock.stage("more_passes"):
             for _ in range(params.passes - 1):
-                found = _look_again(fitter, table, background, params, alphas, limits, threshold, peaks, tracks, fit)
+                found = _look_again(fitter, table, background, params, alphas, limits, threshold, peaks, tracks, fit,
+                                    lens_noise)
                 if found is None:
                     break
                 peaks, tracks, fit = found
@@ -278,7 +283,8 @@ def _lattice_drift(exposure: Exposure, calibration: Calibration, cache: Cache, n
 
 
 def _survey(image: np.ndarray, table: LightFieldTable, samples, sub: np.ndarray, survey: np.ndarray,
-            params: PipelineParams, threshold: float, cache: Cache, fitter: RayFitter | None) -> np.ndarray | None:
+            params: PipelineParams, threshold: float, cache: Cache, fitter: RayFitter | None,
+            lens_noise: np.ndarray) -> np.ndarray | None:
     """The fine stack's alphas from a coarse stack over the whole range (``survey``); None when it
     shows no particle.
 
@@ -289,6 +295,11 @@ def _survey(image: np.ndarray, table: LightFieldTable, samples, sub: np.ndarray,
     coarse = dataclasses.replace(params, maxima_half_slices=-1)  # the range, not every particle
     peaks, _ = locate(products(stack, sub, out=stack), survey, coarse, threshold=threshold)
     alpha = peaks.alpha
+    if fitter is not None and len(peaks):
+        # Not recorded as rejected: the survey's candidates are not the particles'.
+        peaks = peaks.take(~below_local_noise(peaks, fitter.grid, table_index(fitter.table, fitter.cache).tree,
+                                              lens_noise, threshold))
+        alpha = peaks.alpha
     if fitter is not None and len(peaks):
         sx, sy = table.grid.to_lens_plane(peaks.x, peaks.y)
         fit = fitter.fit(sx, sy, peaks.alpha, fine=SURVEY_GRID, wide_fine=SURVEY_GRID)
@@ -302,7 +313,7 @@ def _survey(image: np.ndarray, table: LightFieldTable, samples, sub: np.ndarray,
 
 def _look_again(fitter: RayFitter, table: LightFieldTable, background: BackgroundMap, params: PipelineParams,
                 alphas: np.ndarray, limits: tuple[float, float], threshold: float, peaks: Peaks, tracks: Tracks,
-                fit: RayFit) -> tuple[Peaks, Tracks, RayFit] | None:
+                fit: RayFit, lens_noise: np.ndarray) -> tuple[Peaks, Tracks, RayFit] | None:
     """One more detection pass on the raw image with the found particles' light taken off.
 
     Crowded clusters: blobs of neighbours merge in the product images. Returns the particles with
@@ -324,7 +335,7 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, background: Backgroun
     sx, sy = fitter.grid.to_lens_plane(new.x, new.y)
     weak = new.peak_height < NEW_PEAK_FRACTION * fitter.overlapping_max(sx, sy, new.alpha, fit, peaks.peak_height)
     fitter.reject(new.take(weak), None, "weak_residual")
-    new = new.take(~weak)
+    new = _above_noise(fitter, new.take(~weak), lens_noise, threshold)
     log.debug("another pass: %d candidates", len(new))
     if len(new) == 0:
         return None
@@ -349,6 +360,14 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, background: Backgroun
     tracks = Tracks(x=np.vstack([tracks.x, new_tracks.x]), y=np.vstack([tracks.y, new_tracks.y]),
                     brightness=np.vstack([tracks.brightness, new_tracks.brightness]))
     return both, tracks, both_fit
+
+
+def _above_noise(fitter: RayFitter, peaks: Peaks, lens_noise: np.ndarray, threshold: float) -> Peaks:
+    """``peaks`` without those that do not stand out from the local noise (recorded as ``noise``);
+    ``lens_noise``: the noise variance ratio of each lens of the fit's table."""
+    low = below_local_noise(peaks, fitter.grid, table_index(fitter.table, fitter.cache).tree, lens_noise, threshold)
+    fitter.reject(peaks.take(low), None, "noise")
+    return peaks.take(~low)
 
 
 def _particle_table(peaks: Peaks, tracks: Tracks | None, alphas: np.ndarray, table: LightFieldTable,
