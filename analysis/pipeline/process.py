@@ -296,9 +296,7 @@ def _survey(image: np.ndarray, table: LightFieldTable, samples, sub: np.ndarray,
     peaks, _ = locate(products(stack, sub, out=stack), survey, coarse, threshold=threshold)
     alpha = peaks.alpha
     if fitter is not None and len(peaks):
-        # Not recorded as rejected: the survey's candidates are not the particles'.
-        peaks = peaks.take(~below_local_noise(peaks, fitter.grid, table_index(fitter.table, fitter.cache).tree,
-                                              lens_noise, threshold))
+        peaks = _above_noise(fitter, peaks, lens_noise, threshold, record=False)  # not the particles' candidates
         alpha = peaks.alpha
     if fitter is not None and len(peaks):
         sx, sy = table.grid.to_lens_plane(peaks.x, peaks.y)
@@ -362,11 +360,13 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, background: Backgroun
     return both, tracks, both_fit
 
 
-def _above_noise(fitter: RayFitter, peaks: Peaks, lens_noise: np.ndarray, threshold: float) -> Peaks:
-    """``peaks`` without those that do not stand out from the local noise (recorded as ``noise``);
-    ``lens_noise``: the noise variance ratio of each lens of the fit's table."""
+def _above_noise(fitter: RayFitter, peaks: Peaks, lens_noise: np.ndarray, threshold: float, *,
+                 record: bool = True) -> Peaks:
+    """``peaks`` without those that do not stand out from the local noise (recorded as ``noise`` with
+    ``record``); ``lens_noise``: the noise variance ratio of each lens of the fit's table."""
     low = below_local_noise(peaks, fitter.grid, table_index(fitter.table, fitter.cache).tree, lens_noise, threshold)
-    fitter.reject(peaks.take(low), None, "noise")
+    if record:
+        fitter.reject(peaks.take(low), None, "noise")
     return peaks.take(~low)
 
 
