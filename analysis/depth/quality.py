@@ -77,9 +77,11 @@ def drop_extended(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, 
 def drop_misfits(fitter: RayFitter, peaks: Peaks, fit: RayFit, share: np.ndarray, *,
                  limit: float) -> tuple[Peaks, RayFit, np.ndarray]:
     """Drop fits misfitting beyond ``limit``, recorded as ``misfit``; returns the rest and their
-    ``share`` (one value per fit, e.g. :func:`drop_extended`'s leftover shares)."""
+    leftover shares: ``share`` (:func:`drop_extended`'s, one per fit) when none is dropped, else
+    taken again without the dropped fits' light (it no longer counts as explained)."""
     bad = fit.residual > limit
     if bad.any():
         fitter.reject(peaks.take(bad), fit.take(bad), "misfit")
-        peaks, fit, share = peaks.take(~bad), fit.take(~bad), share[~bad]
+        peaks, fit = peaks.take(~bad), fit.take(~bad)
+        share = leftover_fraction(fitter, fit)
     return peaks, fit, share
