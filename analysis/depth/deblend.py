@@ -18,7 +18,7 @@ from analysis.lightfield.table import LightFieldTable
 
 from .rayfit import FitGrid, RayFit
 from .refine import (FINE_TEMPERATURE, PROBE_FRACTION, PROBE_GRID, PROBE_HALF_RANGE, PROBE_RESIDUAL,
-    WIDE_PROBE_GRID, RayFitter, accept, moved, outshines_misfit, replace_fits)
+    WIDE_BLUR_PITCHES, WIDE_PROBE_GRID, RayFitter, accept, moved, outshines_misfit, replace_fits)
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +80,21 @@ def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit
                                own=fit.take(near), recentre=DEBLEND_RECENTRE)
             new = replace_fits(fitter.grid, peaks, new, np.flatnonzero(near), again)[1]
     return accept(fitter, peaks, new)
+
+
+def refit_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit]:
+    """Refit the strongly blurred particles (blur radius over
+    :data:`analysis.depth.refine.WIDE_BLUR_PITCHES`) once more, with the light of every other
+    particle as the earlier stages left it taken off: :func:`deblend` refitted each with its
+    neighbours' first fits, which that refit has since moved. A refit replaces the fit only where
+    it is acceptable; no particle is dropped here."""
+    rows = np.flatnonzero(fitter.blur_radius_m(fit.alpha) > WIDE_BLUR_PITCHES * fitter.pitch_m)
+    if rows.size == 0:
+        return peaks, fit
+    sub = fit.take(rows)
+    new = fitter.fit(sub.sx_m, sub.sy_m, sub.alpha, subtract=fitter.render(fit), own=sub, recentre=DEBLEND_RECENTRE)
+    ok = np.flatnonzero(fitter.acceptable(new))
+    return replace_fits(fitter.grid, peaks, fit, rows[ok], new.take(ok))
 
 
 def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:

@@ -14,6 +14,8 @@ parameter object stored with every result::
               # behind each); a second pass over the raw image with the found particles' light off
     peaks   = deblend(fitter, peaks, fit)                 # analysis.depth.deblend: neighbours' light off
     peaks   = apply_depth_prior(fitter, peaks, fit)       # analysis.depth.prior: one-lens particles
+    peaks   = refit_blurred(fitter, peaks, fit)           # analysis.depth.deblend: blurred ones again,
+              # with every neighbour's light as the stages before left it
     peaks   = drop_misfits(drop_extended(...))            # analysis.depth.quality: light that does not
               # converge to a point, and the final table's misfit limit (max_fit_residual)
     X, Y, Z = to_physical(peaks.x, peaks.y, peaks.alpha, grid, ...)  # analysis.camera.coordinates
@@ -52,7 +54,7 @@ from analysis.calibration.drift import LatticeDrift, block_phases, estimate_drif
 from analysis.camera.coordinates import Calibration3D, ThinLensCalibration, coordinate_warnings, to_physical
 from analysis.camera.image_grid import ImageGrid
 from analysis.camera.model import CameraModel
-from analysis.depth.deblend import deblend, split_shared
+from analysis.depth.deblend import deblend, refit_blurred, split_shared
 from analysis.depth.prior import apply_depth_prior
 from analysis.depth.quality import FIT_RESIDUAL_SLACK, drop_extended, drop_misfits
 from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
@@ -256,6 +258,9 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         if params.depth_prior and len(peaks) > 1:
             with clock.stage("depth_prior"):
                 peaks, fit = apply_depth_prior(fitter, peaks, fit)
+        if params.deblend and len(peaks) > 1:
+            with clock.stage("refit"):
+                peaks, fit = refit_blurred(fitter, peaks, fit)
         with clock.stage("quality"):
             peaks, fit, share = drop_extended(fitter, peaks, fit)
             peaks, fit, share = drop_misfits(fitter, peaks, fit, share, limit=params.max_fit_residual)
