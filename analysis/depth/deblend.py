@@ -85,9 +85,10 @@ def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit
 def refit_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit]:
     """Refit the strongly blurred particles (blur radius over
     :data:`analysis.depth.refine.WIDE_BLUR_PITCHES`) once more, with the light of every other
-    particle as the earlier stages left it taken off: :func:`deblend` refitted each with its
-    neighbours' first fits, which that refit has since moved. A refit replaces the fit only where
-    it is acceptable; no particle is dropped here."""
+    particle as the earlier stages left it taken off. :func:`deblend` took each one's neighbours'
+    first fits off, and those neighbours moved in that same refit; blurred particles' light
+    overlaps many neighbours', so they gain most from a second round. A refit replaces the fit
+    only where it is acceptable; no particle is dropped here."""
     rows = np.flatnonzero(fitter.blur_radius_m(fit.alpha) > WIDE_BLUR_PITCHES * fitter.pitch_m)
     if rows.size == 0:
         return peaks, fit
