@@ -18,7 +18,7 @@ from analysis.lightfield.table import LightFieldTable
 
 from .rayfit import FitGrid, RayFit
 from .refine import (FINE_TEMPERATURE, PROBE_FRACTION, PROBE_GRID, PROBE_HALF_RANGE, PROBE_RESIDUAL,
-    WIDE_BLUR_PITCHES, WIDE_PROBE_GRID, RayFitter, accept, moved, outshines_misfit, replace_fits)
+    WIDE_PROBE_GRID, RayFitter, accept, moved, outshines_misfit, replace_fits)
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +89,7 @@ def refit_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, 
     first fits off, and those neighbours moved in that same refit; blurred particles' light
     overlaps many neighbours', so they gain most from a second round. A refit replaces the fit
     only where it is acceptable; no particle is dropped here."""
-    rows = np.flatnonzero(fitter.blur_radius_m(fit.alpha) > WIDE_BLUR_PITCHES * fitter.pitch_m)
+    rows = np.flatnonzero(fitter.strongly_blurred(fit.alpha))
     if rows.size == 0:
         return peaks, fit
     sub = fit.take(rows)

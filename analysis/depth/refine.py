@@ -157,6 +157,10 @@ class RayFitter:
         """Radius of the blur disk on the lens plane of a particle sharp at ``alpha``."""
         return np.abs(1.0 - 1.0 / np.asarray(alpha)) * self.table.aperture_radius_m
 
+    def strongly_blurred(self, alpha: np.ndarray) -> np.ndarray:
+        """Whether particles sharp at ``alpha`` are blurred wider than :data:`WIDE_BLUR_PITCHES` (a mask)."""
+        return self.blur_radius_m(alpha) > WIDE_BLUR_PITCHES * self.pitch_m
+
     def fit(self, sx_m: np.ndarray, sy_m: np.ndarray, alpha: np.ndarray, *,
             fine: FitGrid | None = None, wide_fine: FitGrid | None = None, **options) -> RayFit:
         """:func:`analysis.depth.rayfit.fit_rays` with these settings (``options`` override them).
@@ -178,7 +182,7 @@ class RayFitter:
             return fit_rays(self.image, self.table, sx, sy, a, fine=fine, **settings)
         wide = np.zeros(a.size, dtype=bool)
         if wide_fine != fine:
-            wide = self.blur_radius_m(a) > WIDE_BLUR_PITCHES * self.pitch_m
+            wide = self.strongly_blurred(a)
         parts, fits = [], []
         for rows, grid in ((np.flatnonzero(~wide), fine), (np.flatnonzero(wide), wide_fine)):
             for start in range(0, rows.size, FIT_CHUNK):

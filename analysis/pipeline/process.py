@@ -299,10 +299,9 @@ def _survey(image: np.ndarray, table: LightFieldTable, samples, sub: np.ndarray,
     stack = refocus_stack(image, table, survey, grid=table.grid, samples=samples, cache=cache)
     coarse = dataclasses.replace(params, maxima_half_slices=-1)  # the range, not every particle
     peaks, _ = locate(products(stack, sub, out=stack), survey, coarse, threshold=threshold)
-    alpha = peaks.alpha
-    if fitter is not None and len(peaks):
+    if fitter is not None:
         peaks = _above_noise(fitter, peaks, lens_noise, threshold, record=False)  # not the particles' candidates
-        alpha = peaks.alpha
+    alpha = peaks.alpha
     if fitter is not None and len(peaks):
         sx, sy = table.grid.to_lens_plane(peaks.x, peaks.y)
         fit = fitter.fit(sx, sy, peaks.alpha, fine=SURVEY_GRID, wide_fine=SURVEY_GRID)
