@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from analysis.detection.curves import Tracks, find_depth_peaks, link_tracks, merge_duplicates
+from analysis.detection.curves import Peaks, Tracks, find_depth_peaks, link_tracks, merge_duplicates, unique_indices
 from analysis.errors import ParameterError
 from analysis.detection.moments import detect
 
@@ -123,6 +123,25 @@ def test_merge_duplicates_keeps_highest():
     assert len(peaks) == 2
     merged = merge_duplicates(peaks, radius_px=1.5, alpha_tolerance=STEP)
     assert len(merged) == 1 and merged.track[0] == 0
+
+
+def test_merge_with_depth_uncertainty_keeps_pairs_their_fits_tell_apart():
+    # Three pairs 0.8 px apart, all within the alpha tolerance: the first's depths differ by one
+    # combined standard deviation (one particle's light split between two fits), the second's by
+    # five (two particles on nearly one line of sight), the third's by two with wide spreads.
+    sigma = np.array([3e-4, 4e-4, 3e-4, 4e-4, 1e-3, 1e-3])
+    gap = np.array([1.0, 5.0, 2.0]) * np.hypot(sigma[0::2], sigma[1::2])
+    alpha = np.ravel(np.column_stack([np.full(3, 1.01), 1.01 + gap]))
+    n = alpha.size
+    peaks = Peaks(track=np.arange(n), alpha=alpha, x=np.repeat([10.0, 40.0, 70.0], 2) + np.tile([0.0, 0.8], 3),
+                  y=np.full(n, 20.0), peak_height=np.ones(n), peak_width=np.ones(n), residual=np.zeros(n),
+                  prominence=np.ones(n))
+    brightness = np.array([1.0, 2.0, 1.0, 2.0, 2.0, 1.0])
+    kept = unique_indices(peaks, radius_px=1.5, alpha_tolerance=0.01, priority=brightness, alpha_sigma=sigma,
+                          max_sigmas=3.0)
+    assert kept.tolist() == [1, 2, 3, 4]  # the brighter of the first and third pairs, both of the second
+    # Without the uncertainties every pair within the tolerance is one particle.
+    assert unique_indices(peaks, radius_px=1.5, alpha_tolerance=0.01, priority=brightness).tolist() == [1, 3, 4]
 
 
 def test_bad_alphas_rejected():

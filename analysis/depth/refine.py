@@ -89,6 +89,12 @@ PROBE_LIGHT = 0.5
 PROBE_BRIGHT = 1.3
 #: Left-over light counts only above this fraction of the smallest particle intensity (noise).
 LEFT_LIGHT_FLOOR = 0.3
+#: After the last refits, two fits within the merge distance whose depths differ by less than this
+#: many times their combined depth uncertainty (``alpha_spread``) are one particle whose light the
+#: refits split between them: deblending refits each particle with its neighbours' light taken off,
+#: which can bring a ghost and the particle it stands beside together (0.1-2.7 sigma apart on the
+#: realism bench; distinct particles that close across the line of sight stood 4 and more apart).
+SAME_DEPTH_SIGMAS = 3.0
 #: A fit must light at least this fraction of one micro-image's samples (a particle in view lights
 #: about one micro-image's worth, 36-40 on the simulated F01; a hot pixel fitted as a particle
 #: whose light misses every other sample, a small fraction of one).
@@ -222,12 +228,17 @@ class RayFitter:
         return ((fit.intensity > max(self.min_intensity, 0.0)) & (fit.n_lit >= self.min_lit)
                 & (fit.residual <= limit))
 
-    def unique(self, peaks: Peaks, fit: RayFit, *, settled: int = 0, record: bool = True) -> tuple[Peaks, RayFit]:
+    def unique(self, peaks: Peaks, fit: RayFit, *, settled: int = 0, record: bool = True,
+               max_sigmas: float = np.inf) -> tuple[Peaks, RayFit]:
         """Fits that converged onto one particle merged (the brightest kept; the first ``settled``,
         accepted earlier, win over the rest); the others recorded as duplicates unless ``record``
-        is False (hypotheses of the stage, such as probes, rather than candidates)."""
+        is False (hypotheses of the stage, such as probes, rather than candidates). With
+        ``max_sigmas``, fits merge only where their depths also differ by less than that many
+        times their combined ``alpha_spread``."""
         kept = unique_indices(peaks, radius_px=self.merge_radius_px, alpha_tolerance=self.merge_alpha,
-                              priority=fit.intensity, settled=settled)
+                              priority=fit.intensity, settled=settled,
+                              alpha_sigma=None if np.isinf(max_sigmas) else fit.alpha_spread,
+                              max_sigmas=max_sigmas)
         if record:
             gone = np.setdiff1d(np.arange(len(peaks)), kept)
             self.reject(peaks.take(gone), fit.take(gone), "duplicate")

@@ -339,12 +339,15 @@ def merge_duplicates(peaks: Peaks, *, radius_px: float = 1.5, alpha_tolerance: f
 
 
 def unique_indices(peaks: Peaks, *, radius_px: float, alpha_tolerance: float,
-                   priority: np.ndarray | None = None, settled: int = 0) -> np.ndarray:
+                   priority: np.ndarray | None = None, settled: int = 0,
+                   alpha_sigma: np.ndarray | None = None, max_sigmas: float = np.inf) -> np.ndarray:
     """Indices of the peaks to keep when near-duplicates are merged, in their original order.
 
     Of peaks within ``radius_px`` (image) and ``alpha_tolerance`` (alpha) of each other, the one
     with the highest ``priority`` (default ``peak_height``) is kept; the first ``settled`` peaks
-    (particles already accepted) win over the others whatever their priority.
+    (particles already accepted) win over the others whatever their priority. With
+    ``alpha_sigma`` (each peak's alpha uncertainty), a pair must also lie within ``max_sigmas``
+    of their combined uncertainty in alpha.
     """
     n = len(peaks)
     if n < 2:
@@ -357,7 +360,11 @@ def unique_indices(peaks: Peaks, *, radius_px: float, alpha_tolerance: float,
         if removed[i]:
             continue
         for j in tree.query_ball_point([peaks.x[i], peaks.y[i]], r=radius_px):
-            if j != i and not removed[j] and abs(peaks.alpha[j] - peaks.alpha[i]) <= alpha_tolerance:
+            if j == i or removed[j]:
+                continue
+            gap = abs(peaks.alpha[j] - peaks.alpha[i])
+            if gap <= alpha_tolerance and (alpha_sigma is None
+                                           or gap <= max_sigmas * np.hypot(alpha_sigma[i], alpha_sigma[j])):
                 removed[j] = True
     return np.flatnonzero(~removed)
 
