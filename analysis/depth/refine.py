@@ -92,8 +92,8 @@ LEFT_LIGHT_FLOOR = 0.3
 #: After the last refits, two fits within the merge distance whose depths differ by less than this
 #: many times their combined depth uncertainty (``alpha_spread``) are one particle whose light the
 #: refits split between them: deblending refits each particle with its neighbours' light taken off,
-#: which can bring a ghost and the particle it stands beside together (0.1-2.7 sigma apart on the
-#: realism bench; distinct particles that close across the line of sight stood 4 and more apart).
+#: which can bring a ghost and the particle it stands beside together (on the realism bench 0.1-4
+#: sigma apart, 11 of 13 under 3; distinct particles that close across the line of sight: 4.1-11).
 SAME_DEPTH_SIGMAS = 3.0
 #: A fit must light at least this fraction of one micro-image's samples (a particle in view lights
 #: about one micro-image's worth, 36-40 on the simulated F01; a hot pixel fitted as a particle
