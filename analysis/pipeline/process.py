@@ -58,8 +58,7 @@ from analysis.depth.deblend import deblend, refit_blurred, split_shared
 from analysis.depth.prior import apply_depth_prior
 from analysis.depth.quality import FIT_RESIDUAL_SLACK, drop_extended, drop_misfits
 from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
-from analysis.depth.refine import (COARSE_LATERAL_PITCHES, COARSE_TEMPERATURE, PROBE_RESIDUAL,
-                                   SAME_DEPTH_SIGMAS,
+from analysis.depth.refine import (COARSE_LATERAL_PITCHES, COARSE_TEMPERATURE, PROBE_RESIDUAL, SAME_DEPTH_SIGMAS,
                                    RayFitter, inside, outshines_misfit, refine_peaks, residual_image)
 from analysis.depth.table_index import table_index
 from analysis.detection.curves import Peaks, Tracks
@@ -263,6 +262,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
             with clock.stage("refit"):
                 peaks, fit = refit_blurred(fitter, peaks, fit)
         with clock.stage("quality"):
+            # The refits since the refine stage's merge can bring two fits onto one particle.
             peaks, fit = fitter.unique(peaks, fit, max_sigmas=SAME_DEPTH_SIGMAS)
             peaks, fit, share = drop_extended(fitter, peaks, fit)
             peaks, fit, share = drop_misfits(fitter, peaks, fit, share, limit=params.max_fit_residual)
