@@ -15,7 +15,7 @@ from analysis.formats.particle_table import read_csv
 from analysis.pipeline.tables import FIT_TABLE_RIM_PX, get_table
 from analysis.cache import Cache
 from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, pixel_footprint
-from analysis.depth.rayfit_kernels import GridPass, _count_inside, _position_offsets, grid_costs
+from analysis.depth.rayfit_kernels import GridPass, _count_inside, _position_offsets, censored_intensity, grid_costs
 from analysis.depth.render_kernels import lit_fraction
 from analysis.depth.refine import COARSE_TEMPERATURE
 from analysis.depth.table_index import TableIndex
@@ -397,6 +397,57 @@ def test_a_saturated_particle_keeps_its_depth(blur):
 
     dim, censored, as_values = depth_error(1800.0, 4095.0), depth_error(14000.0, 4095.0), depth_error(14000.0, 1e9)
     assert censored < 2.0 * dim + 0.005 and censored < 0.8 * as_values, (dim, censored, as_values)
+
+
+def test_censored_intensity_minimises_the_misfit_with_its_bounds():
+    """The intensity of a candidate with saturated samples is the minimum of the squared misfit of
+    the others plus each bound's shortfall (checked against a dense search), whatever the mix:
+    bounds alone, bounds met by the least-squares intensity, dark samples against bright bounds."""
+    rng = np.random.default_rng(4)
+    for case in range(300):
+        n_free, n_cens = rng.integers(0, 6), rng.integers(1, 6)
+        f = rng.uniform(0.02, 1.0, n_free)
+        v = rng.normal(rng.choice([0.0, 2000.0]), 300.0, n_free)
+        cens_f = rng.uniform(0.0, 1.0, n_cens) * (rng.random(n_cens) < 0.8)
+        cens_v = np.full(n_cens, 4000.0)
+        s_vf, s_ff, sum_v2 = float(v @ f), float(f @ f), float(v @ v)
+        cost, inten = censored_intensity(s_vf, s_ff, sum_v2, cens_v, cens_f)
+        grid = np.linspace(0.0, 1.5 * max(inten, 1.0) + 5e5 * (s_ff == 0), 200001)
+        total = ((v[None, :] - grid[:, None] * f[None, :]) ** 2).sum(1) + (
+            np.maximum(cens_v[None, :] - grid[:, None] * cens_f[None, :], 0.0) ** 2).sum(1)
+        assert cost == pytest.approx(sum_v2 - 2 * inten * s_vf + inten ** 2 * s_ff
+                                     + np.sum(np.maximum(cens_v - inten * cens_f, 0.0) ** 2), rel=1e-9, abs=1e-6)
+        assert cost <= total.min() * (1 + 1e-9) + 1e-6, (case, cost, total.min())
+
+
+@pytest.mark.parametrize("brightness", [4500.0, 9000.0])
+def test_fits_beside_a_saturated_particle_do_not_take_its_light(brightness):
+    """Fits started a few pitches beside a saturated particle in focus, at depths where a stack
+    shows ghosts of it, stay faint: they light a few of its clipped samples slightly and dark
+    samples fully, which no intensity explains. Before the censored samples' bounds entered the
+    intensity's minimisation, a bound alone set it (tens of thousands of DN, at a relative misfit
+    like a particle's), and such a ghost's light hid the particle in the deblend screen."""
+    from analysis.depth.refine import FINE_GRID, WIDE_FINE_GRID
+
+    model = CameraModel.from_metadata(simulated_camera_metadata(size=320))
+    optics = model.optics
+    table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
+    pitch = float(np.hypot(*table.basis_m[:, 0]))
+    z = float(optics.z_of_alpha(1.0005))
+    s = np.array([0.3, 0.2]) * pitch
+    particle = Particles(np.array([s[0] * z / optics.exit_pupil_m]), np.array([s[1] * z / optics.exit_pupil_m]),
+                         np.array([z]), np.array([brightness]))
+    image = render_exposure(model, particle, seed=3)
+    assert np.count_nonzero(image >= 4095) > 10
+    angle = np.linspace(0.0, 2.0 * np.pi, 12, endpoint=False)
+    r = np.tile([1.0, 2.0, 3.0], 4) * pitch
+    options = dict(background=float(np.median(image) - model.black_level), alpha_half_range=0.006,
+                   aperture_per_lens_plane=aperture_per_lens_plane(optics), coarse=PIPELINE_COARSE)
+    own = fit_rays(image, table, s[:1], s[1:], np.array([1.0005]), fine=FINE_GRID, **options)
+    ghosts = fit_rays(image, table, s[0] + r * np.cos(angle), s[1] + r * np.sin(angle),
+                      np.tile([0.975, 1.03, 0.985, 1.02], 3), fine=WIDE_FINE_GRID, **options)
+    assert own.intensity[0] > 0.8 * brightness
+    assert np.all(ghosts.intensity < 0.2 * own.intensity[0]), ghosts.intensity
 
 
 def _pair_fits(alphas, truth_alphas, brightness):
