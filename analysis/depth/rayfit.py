@@ -20,6 +20,7 @@ brightness blurs away when the blur is under a lens pitch or two.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, fields
 from typing import Any, NamedTuple
 
@@ -155,6 +156,48 @@ def unexplained_light(image: np.ndarray, table: LightFieldTable, sx_m: np.ndarra
             - _at(background_per_sample(table, background), g.ids) - explained[g.ids])
     left = np.where(left > floor, left, 0.0)
     return _sum_per_point(left, g, len(sx_m))
+
+
+def point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius_m: np.ndarray, *,
+                  background: float | np.ndarray, explained: np.ndarray, aperture_per_lens_plane: float,
+                  blur_px: float = DEFAULT_BLUR_PX, saturation: float = 4095.0, spread_m: float = 0.0,
+                  cache: Cache | None = None) -> np.ndarray:
+    """Per fit, how much of the variation of the light within the lenses (each lens's own mean
+    level taken out) its point-source pattern explains: the squared correlation, pooled over the
+    lenses within ``radius_m`` of it, between that light and the fit's, 0 where they anticorrelate.
+
+    Extended light (a reflection, glow, glare) lights each micro-image nearly evenly, so a fit
+    on it explains little of the variation within lenses, whatever share of their light it
+    takes; a point source puts a spot in each lens, which its fit follows. Other fits' light
+    (``explained``, from :func:`render_fits`, less the fit's own) is taken off first; saturated
+    samples are left out.
+    """
+    n = len(fit)
+    if n == 0:
+        return np.zeros(0)
+    idx = table_index(table, cache)
+    g = idx.gather(fit.sx_m, fit.sy_m, np.asarray(radius_m, float))
+    raw = np.ascontiguousarray(image).reshape(-1)[table.pixel_index[g.ids]].astype(np.float64)
+    uv = idx.uv(g.ids)
+    own = _render_gathered(fit, idx, g, uv, aperture_per_lens_plane, blur_px)
+    pattern = own
+    if spread_m > 0:
+        pattern = own / 7.0
+        for a in np.arange(6) * np.pi / 3:
+            moved = dataclasses.replace(fit, sx_m=fit.sx_m + spread_m * np.cos(a), sy_m=fit.sy_m + spread_m * np.sin(a))
+            pattern = pattern + _render_gathered(moved, idx, g, uv, aperture_per_lens_plane, blur_px) / 7.0
+    light = ((raw - table.black_level) / idx.weight(g.ids) - _at(background_per_sample(table, background), g.ids)
+             - explained[g.ids] + own)
+    use = (raw < saturation).astype(np.float64)
+    lens = np.repeat(np.arange(g.sample_ptr.size - 1), np.diff(g.sample_ptr))
+    count = np.maximum(np.bincount(lens, weights=use, minlength=g.sample_ptr.size - 1), 1.0)
+    dv = use * (light - (np.bincount(lens, weights=use * light, minlength=count.size) / count)[lens])
+    df = use * (pattern - (np.bincount(lens, weights=use * pattern, minlength=count.size) / count)[lens])
+    owner = np.repeat(np.arange(n), np.diff(g.lens_ptr))[lens]
+    s_vf = np.bincount(owner, weights=dv * df, minlength=n)
+    s_vv = np.bincount(owner, weights=dv * dv, minlength=n)
+    s_ff = np.bincount(owner, weights=df * df, minlength=n)
+    return np.where(s_vf > 0, s_vf * s_vf / np.maximum(s_vv * s_ff, 1e-300), 0.0)
 
 
 def _at(values: np.ndarray, ids: np.ndarray) -> np.ndarray:
