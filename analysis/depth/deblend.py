@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 from analysis.detection.curves import Peaks
 from analysis.lightfield.table import LightFieldTable
 
+from .quality import converges
 from .rayfit import FitGrid, RayFit
 from .refine import (FINE_TEMPERATURE, PROBE_FRACTION, PROBE_GRID, PROBE_HALF_RANGE, PROBE_RESIDUAL,
     WIDE_PROBE_GRID, RayFitter, accept, moved, outshines_misfit, replace_fits)
@@ -101,8 +102,9 @@ def refit_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, 
 def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
     """Fits (a mask) on a brighter fit's line of sight (within :data:`LINE_OF_SIGHT_PITCHES`) with
     less evidence of their own than a probe needs (under :data:`PROBE_FRACTION` of its light, or
-    misfitting beyond :data:`PROBE_RESIDUAL`) and not outshining the brighter one's misfit
-    (:func:`analysis.depth.refine.outshines_misfit`), or whose light and the brighter one's one
+    misfitting beyond :data:`PROBE_RESIDUAL`), not outshining the brighter one's misfit
+    (:func:`analysis.depth.refine.outshines_misfit`) and with light that does not converge to a
+    point (:func:`analysis.depth.quality.converges`), or whose light and the brighter one's one
     particle explains better than the pair does (:func:`one_particle`)."""
     weak = np.zeros(len(fit), dtype=bool)
     if len(fit) < 2:
@@ -115,6 +117,9 @@ def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
     unproven = (((fit.intensity[faint] < PROBE_FRACTION * fit.intensity[bright])
                  | (fit.residual[faint] > PROBE_RESIDUAL))
                 & ~outshines_misfit(fit.take(faint), fit.intensity[bright] * fit.residual[bright]))
+    if unproven.any():
+        rows = np.flatnonzero(unproven)
+        unproven[rows] = ~converges(fitter, fit.take(faint[rows]), fitter.render(fit))
     weak[faint[unproven]] = True
     faint, bright = faint[~unproven], bright[~unproven]
     weak[faint[one_particle(fitter, fit, faint, bright)]] = True

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, fields
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import numba
 import numpy as np
@@ -150,12 +150,15 @@ def unexplained_light(image: np.ndarray, table: LightFieldTable, sx_m: np.ndarra
     each point, after taking off ``explained`` (from :func:`render_fits`); one sum per point.
     ``background``: one level, or one per sample of ``table``."""
     idx = table_index(table, cache)
-    g = idx.gather(np.asarray(sx_m, float), np.asarray(sy_m, float), np.asarray(radius_m, float))
     flat = np.ascontiguousarray(image).reshape(-1)
-    left = ((flat[table.pixel_index[g.ids]].astype(np.float64) - table.black_level) / idx.weight(g.ids)
-            - _at(background_per_sample(table, background), g.ids) - explained[g.ids])
-    left = np.where(left > floor, left, 0.0)
-    return _sum_per_point(left, g, len(sx_m))
+    bg = background_per_sample(table, background)
+
+    def part(sx: np.ndarray, sy: np.ndarray, radius: np.ndarray) -> np.ndarray:
+        g = idx.gather(sx, sy, radius)
+        left = ((flat[table.pixel_index[g.ids]].astype(np.float64) - table.black_level) / idx.weight(g.ids)
+                - _at(bg, g.ids) - explained[g.ids])
+        return _sum_per_point(np.where(left > floor, left, 0.0), g, sx.size)
+    return _per_point(part, sx_m, sy_m, radius_m)
 
 
 def point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius_m: np.ndarray, *,
@@ -172,11 +175,19 @@ def point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius
     (``explained``, from :func:`render_fits`, less the fit's own) is taken off first; saturated
     samples are left out.
     """
+    def part(rows: np.ndarray, radius: np.ndarray) -> np.ndarray:
+        return _point_pattern(image, table, fit.take(rows.astype(np.int64)), radius, background=background,
+                              explained=explained, aperture_per_lens_plane=aperture_per_lens_plane,
+                              blur_px=blur_px, saturation=saturation, spread_m=spread_m, cache=cache)
+    return _per_point(part, np.arange(len(fit)), radius_m)
+
+
+def _point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius_m: np.ndarray, *,
+                   background: float | np.ndarray, explained: np.ndarray, aperture_per_lens_plane: float,
+                   blur_px: float, saturation: float, spread_m: float, cache: Cache | None) -> np.ndarray:
     n = len(fit)
-    if n == 0:
-        return np.zeros(0)
     idx = table_index(table, cache)
-    g = idx.gather(fit.sx_m, fit.sy_m, np.asarray(radius_m, float))
+    g = idx.gather(fit.sx_m, fit.sy_m, radius_m)
     raw = np.ascontiguousarray(image).reshape(-1)[table.pixel_index[g.ids]].astype(np.float64)
     uv = idx.uv(g.ids)
     own = _render_gathered(fit, idx, g, uv, aperture_per_lens_plane, blur_px)
@@ -209,9 +220,29 @@ def explained_light(table: LightFieldTable, sx_m: np.ndarray, sy_m: np.ndarray, 
                     explained: np.ndarray, cache: Cache | None = None) -> np.ndarray:
     """The light of fitted particles (``explained``, from :func:`render_fits`) in the lenses within
     ``radius_m`` of each point; one sum per point (devignetted DN)."""
-    g = table_index(table, cache).gather(np.asarray(sx_m, float), np.asarray(sy_m, float),
-                                         np.asarray(radius_m, float))
-    return _sum_per_point(explained[g.ids].astype(np.float64), g, len(sx_m))
+    idx = table_index(table, cache)
+
+    def part(sx: np.ndarray, sy: np.ndarray, radius: np.ndarray) -> np.ndarray:
+        g = idx.gather(sx, sy, radius)
+        return _sum_per_point(explained[g.ids].astype(np.float64), g, sx.size)
+    return _per_point(part, sx_m, sy_m, radius_m)
+
+
+#: Points per gather in :func:`unexplained_light`, :func:`explained_light` and
+#: :func:`point_pattern`: a point blurred over ten pitches gathers some 20 000 samples, and
+#: gathering a crowd's thousand candidates at once held over 300 MB.
+GATHER_CHUNK = 32
+
+
+def _per_point(part: Callable[..., np.ndarray], *columns: np.ndarray) -> np.ndarray:
+    """``part(*columns[rows])`` over chunks of :data:`GATHER_CHUNK` rows, joined: one value per row."""
+    columns = np.broadcast_arrays(*(np.atleast_1d(np.asarray(c, dtype=np.float64)) for c in columns))
+    n = columns[0].size
+    out = np.zeros(n)
+    for start in range(0, n, GATHER_CHUNK):
+        rows = slice(start, min(start + GATHER_CHUNK, n))
+        out[rows] = part(*(np.ascontiguousarray(c[rows]) for c in columns))
+    return out
 
 
 def _sum_per_point(values: np.ndarray, g: Gathered, n: int) -> np.ndarray:

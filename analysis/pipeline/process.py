@@ -56,7 +56,7 @@ from analysis.camera.image_grid import ImageGrid
 from analysis.camera.model import CameraModel
 from analysis.depth.deblend import deblend, refit_blurred, split_shared
 from analysis.depth.prior import apply_depth_prior
-from analysis.depth.quality import FIT_RESIDUAL_SLACK, drop_extended, drop_misfits
+from analysis.depth.quality import FIT_RESIDUAL_SLACK, converges, drop_extended, drop_misfits
 from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
 from analysis.depth.refine import (COARSE_LATERAL_PITCHES, COARSE_TEMPERATURE, PROBE_RESIDUAL, SAME_DEPTH_SIGMAS,
                                    RayFitter, inside, outshines_misfit, refine_peaks, residual_image)
@@ -345,12 +345,16 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, background: Backgroun
         return None
     new, new_fit = inside(fitter, *refine_peaks(fitter, new, subtract=explained), limits)
     # A new one must fit well and be a good part as bright as the particles whose light reaches it,
-    # or fit very well and outshine what their model leaves unexplained: the faint particles of a
-    # wide brightness spread pass only the second test.
+    # or fit very well and outshine what their model leaves unexplained, or have light that
+    # converges to a point, which the light their model leaves does not: the faint particles of a
+    # wide brightness spread pass only the last two.
     neighbour = fitter.overlapping_max(new_fit.sx_m, new_fit.sy_m, new_fit.alpha, fit, fit.intensity)
     misfit_dn = fitter.overlapping_max(new_fit.sx_m, new_fit.sy_m, new_fit.alpha, fit, fit.intensity * fit.residual)
     good = (((new_fit.residual <= PROBE_RESIDUAL) & (new_fit.intensity >= NEW_FRACTION * neighbour))
             | outshines_misfit(new_fit, misfit_dn))
+    if not good.all():
+        rest = np.flatnonzero(~good)
+        good[rest] = converges(fitter, new_fit.take(rest), explained + fitter.render(new_fit))
     fitter.reject(new.take(~good), new_fit.take(~good), "weak_residual")
     new, new_fit = new.take(good), new_fit.take(good)
     if len(new) == 0:
