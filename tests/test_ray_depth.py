@@ -411,7 +411,7 @@ def test_censored_intensity_minimises_the_misfit_with_its_bounds():
         cens_f = rng.uniform(0.0, 1.0, n_cens) * (rng.random(n_cens) < 0.8)
         cens_v = np.full(n_cens, 4000.0)
         s_vf, s_ff, sum_v2 = float(v @ f), float(f @ f), float(v @ v)
-        cost, inten = censored_intensity(s_vf, s_ff, sum_v2, cens_v, cens_f)
+        cost, inten = censored_intensity(s_vf, s_ff, sum_v2, cens_v, cens_f, np.empty(n_cens, dtype=bool))
         grid = np.linspace(0.0, 1.5 * max(inten, 1.0) + 5e5 * (s_ff == 0), 200001)
         total = ((v[None, :] - grid[:, None] * f[None, :]) ** 2).sum(1) + (
             np.maximum(cens_v[None, :] - grid[:, None] * cens_f[None, :], 0.0) ** 2).sum(1)

@@ -179,6 +179,7 @@ def grid_costs(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, c
             cens_v[c_k] = values[j]
             c_k += 1
     cens_f = np.zeros((n_cens, n_pos))
+    walked = np.empty(n_cens, dtype=np.bool_)
     r_ap = np.sqrt(r_ap2)
     # Circumradius of a lens cell (a regular hexagon's is pitch / sqrt(3)), and the farthest
     # point of a pixel's footprint; samples within `inner` of the aperture centre see no crosstalk.
@@ -354,7 +355,7 @@ def grid_costs(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, c
                 costs[k] = sum_v2
                 inten[k] = 0.0
             if n_cens > 0:
-                costs[k], inten[k] = censored_intensity(s_vf[q], s_ff[q], sum_v2, cens_v, cens_f[:, q])
+                costs[k], inten[k] = censored_intensity(s_vf[q], s_ff[q], sum_v2, cens_v, cens_f[:, q], walked)
             lit[k] = s_f[q]
             cand[k, 0] = sx0 + off_x[q]
             cand[k, 1] = sy0 + off_y[q]
@@ -543,37 +544,32 @@ def _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, lat_t, cnt, open_pts):
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def censored_intensity(s_vf, s_ff, sum_v2, cens_v, cens_f):
+def censored_intensity(s_vf, s_ff, sum_v2, cens_v, cens_f, walked):
     """A candidate's cost and intensity with the censored samples as lower bounds: the intensity
     that minimises the others' squared misfit plus ``max(0, v_c - I f_c)^2`` for each bound the
     prediction falls short of, and that cost. The cost is convex and quadratic between the
-    bounds' break points ``v_c / f_c``; walking them down from the top finds its minimum.
+    bounds' break points ``v_c / f_c``; walking them down from the top finds its minimum
+    (``walked``: a work array as long as ``cens_v``).
     (Raising the intensity to the highest break point instead lets a candidate that lights dark
     samples fully and a saturated one slightly take an intensity of tens of thousands: a ghost
     whose relative misfit looks small and whose light then hides the saturated particle.)"""
-    n = 0
     for c in range(cens_v.size):
-        if cens_f[c] > 0.0 and cens_v[c] > 0.0:
-            n += 1
-    brk = np.empty(n)
-    idx = np.empty(n, dtype=np.int64)
-    n = 0
-    for c in range(cens_v.size):
-        if cens_f[c] > 0.0 and cens_v[c] > 0.0:
-            brk[n] = cens_v[c] / cens_f[c]
-            idx[n] = c
-            n += 1
-    order = np.argsort(-brk)
+        walked[c] = not (cens_f[c] > 0.0 and cens_v[c] > 0.0)
     a = s_ff
     b = s_vf
     inten = max(b / a, 0.0) if a > 0.0 else 0.0
-    for k in range(n):
-        upper = brk[order[k]]
-        if a > 0.0 and inten >= upper:
+    while True:
+        top = -1
+        upper = -1.0
+        for c in range(cens_v.size):  # the highest break point not walked past (few: no sort)
+            if not walked[c] and cens_v[c] / cens_f[c] > upper:
+                upper = cens_v[c] / cens_f[c]
+                top = c
+        if top < 0 or (a > 0.0 and inten >= upper):
             break  # the minimum lies above this break point: its bound is met
-        c = idx[order[k]]
-        a += cens_f[c] * cens_f[c]
-        b += cens_f[c] * cens_v[c]
+        walked[top] = True
+        a += cens_f[top] * cens_f[top]
+        b += cens_f[top] * cens_v[top]
         inten = min(max(b / a, 0.0), upper)
     cost = sum_v2 - 2.0 * inten * s_vf + inten * inten * s_ff
     for c in range(cens_v.size):
