@@ -130,21 +130,26 @@ def test_particles_on_compact_glints_are_kept_and_the_glints_yield_none(z_mm, at
     assert np.count_nonzero(result.rejected["reason"] == "extended") >= 9
 
 
-def test_a_faint_partner_on_a_bright_particles_line_of_sight_is_found():
-    """Nine pairs on one line of sight each, 1-2 mm apart in depth, the partner with 0.3 of the
-    light (brightness spreads 10x and more): its tight fit, far brighter than what the bright one's
-    model leaves unexplained, is evidence of a particle, though it is under a probe's share of the
-    light."""
+def _pairs_on_lines_of_sight(seed: int, partner_dn: float):
+    """Nine pairs on one line of sight each, 1-2 mm apart in depth, the bright one of 5000 DN and
+    its partner of ``partner_dn``, processed: the pairs, their score."""
     gx, gy = np.meshgrid([-1.2, 0.0, 1.2], [-1.2, 0.0, 1.2])
-    rng = np.random.default_rng(3)
+    rng = np.random.default_rng(seed)
     z1 = 59.5 + rng.uniform(-0.5, 0.5, gx.size)
     z2 = z1 + rng.uniform(1.0, 2.0, gx.size) * rng.choice([-1, 1], gx.size)
     x1, y1 = gx.ravel(), gy.ravel()
     pairs = Particles(np.r_[x1, x1 * z2 / z1], np.r_[y1, y1 * z2 / z1], np.r_[z1, z2],
-                      np.r_[np.full(9, 5000.0), np.full(9, 1500.0)])
+                      np.r_[np.full(9, 5000.0), np.full(9, partner_dn)])
     result, truth, _ = _process(pairs)
     assert truth["X"].size == 18
-    s = score(result.particles, truth, nn_mm=mean_nn_distance(truth["X"], truth["Y"], truth["Z"]))
+    return pairs, result, score(result.particles, truth, nn_mm=mean_nn_distance(truth["X"], truth["Y"], truth["Z"]))
+
+
+def test_a_faint_partner_on_a_bright_particles_line_of_sight_is_found():
+    """Nine pairs on one line of sight each, the partner with 0.3 of the light (brightness spreads
+    10x and more): its tight fit, far brighter than what the bright one's model leaves unexplained,
+    is evidence of a particle, though it is under a probe's share of the light."""
+    pairs, result, s = _pairs_on_lines_of_sight(3, 1500.0)
     # With a fixed share of the brighter one's light as the only evidence: 9 of 18.
     assert s.n_matched >= 15 and _all_real(result, pairs), s
 
@@ -152,16 +157,8 @@ def test_a_faint_partner_on_a_bright_particles_line_of_sight_is_found():
 def test_a_partner_with_a_seventh_of_the_light_is_found_where_its_light_converges():
     """As above with 0.15 of the light: too faint to outshine the bright one's left-over light,
     but its own light follows a point's pattern within the lenses
-    (:func:`analysis.depth.quality.converges`), which that
-    left-over light does not. 12 of 18 found by the earlier tests alone (seeds 3-5 of this scene:
-    11-12), with this one 15 (14-15); never a false one."""
-    gx, gy = np.meshgrid([-1.2, 0.0, 1.2], [-1.2, 0.0, 1.2])
-    rng = np.random.default_rng(4)
-    z1 = 59.5 + rng.uniform(-0.5, 0.5, gx.size)
-    z2 = z1 + rng.uniform(1.0, 2.0, gx.size) * rng.choice([-1, 1], gx.size)
-    x1, y1 = gx.ravel(), gy.ravel()
-    pairs = Particles(np.r_[x1, x1 * z2 / z1], np.r_[y1, y1 * z2 / z1], np.r_[z1, z2],
-                      np.r_[np.full(9, 5000.0), np.full(9, 750.0)])
-    result, truth, _ = _process(pairs)
-    s = score(result.particles, truth, nn_mm=mean_nn_distance(truth["X"], truth["Y"], truth["Z"]))
+    (:func:`analysis.depth.quality.converges`), which that left-over light does not. 12 of 18
+    found by the earlier tests alone (seeds 3-5 of this scene: 11-12), with this one 15 (14-15);
+    never a false one."""
+    pairs, result, s = _pairs_on_lines_of_sight(4, 750.0)
     assert s.n_matched >= 14 and _all_real(result, pairs), s
