@@ -83,11 +83,6 @@ log = logging.getLogger(__name__)
 
 #: Above this fraction of saturated green pixels an exposure holds no usable particle image.
 SATURATED_FRAME_FRACTION = 0.2
-#: A later detection pass fits only blobs at least this fraction of the peak height of the
-#: brightest found particle whose light reaches them (a cheap screen before the fit: a quarter of
-#: the faint particles of a 12x brightness spread, half hidden in a bright one's blur, peak below
-#: 0.05 of it).
-NEW_PEAK_FRACTION = 0.03
 #: A new particle must be this fraction as bright as the brightest found particle whose light
 #: reaches it (left-over light of an imperfectly modelled one: a fifth of it or less), or outshine
 #: their misfit (:func:`analysis.depth.refine.outshines_misfit`).
@@ -333,13 +328,10 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, background: Backgroun
                              grid=fitter.grid, samples=rs, cache=fitter.cache)
     new, new_tracks = locate(products(rstack, rsub, out=rstack), alphas, params, threshold=threshold)
     del residual, rs, rstack, rsub  # not needed by the fits below (an F01's: 40 MB and more)
-    # Left-over light of an imperfectly modelled particle lies within its reach and is weak next to
-    # it; a faint particle of its own may lie anywhere (brightness spreads 10x or more): so each
-    # candidate is weighed against the found particles whose light reaches it, not against all.
-    sx, sy = fitter.grid.to_lens_plane(new.x, new.y)
-    weak = new.peak_height < NEW_PEAK_FRACTION * fitter.overlapping_max(sx, sy, new.alpha, fit, peaks.peak_height)
-    fitter.reject(new.take(weak), None, "weak_residual")
-    new = _above_noise(fitter, new.take(~weak), lens_noise, threshold)
+    # Every candidate above the noise is fitted: a screen by peak height against the found
+    # particles whose light reaches it (0.03 of theirs) dropped faint particles that the tests
+    # after the fit keep (30 more found on 63 realistic exposures, one more false, 1.04-1.08x time).
+    new = _above_noise(fitter, new, lens_noise, threshold)
     log.debug("another pass: %d candidates", len(new))
     if len(new) == 0:
         return None
