@@ -111,36 +111,40 @@ def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
         return weak
     xy = np.column_stack([fit.sx_m, fit.sy_m])
     pairs = cKDTree(xy).query_pairs(LINE_OF_SIGHT_PITCHES * fitter.pitch_m, output_type="ndarray")
+    if pairs.size == 0:
+        return weak
     a, b = pairs[:, 0], pairs[:, 1]
     a_fainter = fit.intensity[a] < fit.intensity[b]
     faint, bright = np.where(a_fainter, a, b), np.where(a_fainter, b, a)
     unproven = (((fit.intensity[faint] < PROBE_FRACTION * fit.intensity[bright])
                  | (fit.residual[faint] > PROBE_RESIDUAL))
                 & ~outshines_misfit(fit.take(faint), fit.intensity[bright] * fit.residual[bright]))
+    explained = fitter.render(fit)  # the light of all fits, for both tests below
     if unproven.any():
         rows = np.flatnonzero(unproven)
-        unproven[rows] = ~converges(fitter, fit.take(faint[rows]), fitter.render(fit))
+        unproven[rows] = ~converges(fitter, fit.take(faint[rows]), explained)
     weak[faint[unproven]] = True
     faint, bright = faint[~unproven], bright[~unproven]
-    weak[faint[one_particle(fitter, fit, faint, bright)]] = True
+    weak[faint[one_particle(fitter, fit, faint, bright, explained)]] = True
     return weak
 
 
-def one_particle(fitter: RayFitter, fit: RayFit, faint: np.ndarray, bright: np.ndarray) -> np.ndarray:
+def one_particle(fitter: RayFitter, fit: RayFit, faint: np.ndarray, bright: np.ndarray,
+                 explained: np.ndarray | None = None) -> np.ndarray:
     """Pairs of fits on one line of sight (rows ``faint[k]``, ``bright[k]``) that are one particle
     (a mask over the pairs): the brighter refitted with both fits' light on its pixels misfits them
     less (DN per sample) than it did with the fainter's light taken off. Two particles must explain
     the pixels better than one: a blurred particle whose depth the first fit misjudged can leave
     enough light at its true depth for a second fit of about its brightness, as good, at nearly its
     place (most of the false particles on the off-focus ball with a 0.8 px blur). Pairs of true
-    particles misfit 1.3-5 times more as one on the realistic shadowing scenes, 0.7-2 in crowds."""
+    particles misfit 1.3-5 times more as one on the realistic shadowing scenes, 0.7-2 in crowds.
+    ``explained``: the light of all of ``fit`` (:meth:`RayFitter.render`), when already rendered."""
     if faint.size == 0:
         return np.zeros(0, dtype=bool)
     # All light but the pairs'; the brighter is refitted to what is left (its own share added back).
     # Where pairs overlap, each single fit also sees the other pairs' fainter light: it then
     # misfits more, so the rule errs toward keeping both.
-    explained = fitter.render(fit)
-    explained -= fitter.render(fit.take(np.unique(faint)))
+    explained = (fitter.render(fit) if explained is None else explained) - fitter.render(fit.take(np.unique(faint)))
     single = fitter.fit(fit.sx_m[bright], fit.sy_m[bright], fit.alpha[bright], subtract=explained,
                         own=fit.take(bright), recentre=DEBLEND_RECENTRE)
     # RayFit.residual is the misfit per sample over the intensity: compare misfits in DN.

@@ -68,13 +68,11 @@ def converges(fitter: RayFitter, fit: RayFit, explained: np.ndarray) -> np.ndarr
     (:func:`analysis.depth.rayfit.point_pattern`) explains more than :data:`EXTENDED_POINT_PATTERN`
     of its variation, and :data:`EXTENDED_POINT_OVER_SPREAD` times what the fit spread over a source
     one pitch across explains. ``explained``: the light of all fits (:meth:`RayFitter.render`)."""
-    def pattern(spread_m: float) -> np.ndarray:
-        return point_pattern(fitter.image, fitter.table, fit, fitter.blur_radius_m(fit.alpha) + 0.5 * fitter.pitch_m,
-                             background=fitter.background, explained=explained,
-                             aperture_per_lens_plane=fitter.aperture_per_lens_plane, blur_px=fitter.blur_px,
-                             saturation=fitter.saturation, spread_m=spread_m, cache=fitter.cache)
-    point = pattern(0.0)
-    return (point > EXTENDED_POINT_PATTERN) & (point > EXTENDED_POINT_OVER_SPREAD * pattern(fitter.pitch_m))
+    point, spread = point_pattern(fitter.image, fitter.table, fit, fitter.blur_radius_m(fit.alpha) + 0.5 * fitter.pitch_m,
+                                  background=fitter.background, explained=explained,
+                                  aperture_per_lens_plane=fitter.aperture_per_lens_plane, spread_m=fitter.pitch_m,
+                                  blur_px=fitter.blur_px, saturation=fitter.saturation, cache=fitter.cache).T
+    return (point > EXTENDED_POINT_PATTERN) & (point > EXTENDED_POINT_OVER_SPREAD * spread)
 
 
 def drop_extended(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit, np.ndarray]:

@@ -20,8 +20,7 @@ brightness blurs away when the blur is under a lens pitch or two.
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any, Callable, NamedTuple
 
 import numba
@@ -164,17 +163,19 @@ def unexplained_light(image: np.ndarray, table: LightFieldTable, sx_m: np.ndarra
 
 def point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius_m: np.ndarray, *,
                   background: float | np.ndarray, explained: np.ndarray, aperture_per_lens_plane: float,
-                  blur_px: float = DEFAULT_BLUR_PX, saturation: float = 4095.0, spread_m: float = 0.0,
+                  spread_m: float, blur_px: float = DEFAULT_BLUR_PX, saturation: float = 4095.0,
                   cache: Cache | None = None) -> np.ndarray:
     """Per fit, how much of the variation of the light within the lenses (each lens's own mean
-    level taken out) its point-source pattern explains: the squared correlation, pooled over the
-    lenses within ``radius_m`` of it, between that light and the fit's, 0 where they anticorrelate.
+    level taken out) its point-source pattern explains, and how much the same fit spread over a
+    source ``spread_m`` across does (its centre and six points on a ring): the squared
+    correlations, pooled over the lenses within ``radius_m`` of it, between that light and each
+    pattern, 0 where they anticorrelate. Returns an array of shape ``(n, 2)``: point, spread.
 
     Extended light (a reflection, glow, glare) lights each micro-image nearly evenly, so a fit
     on it explains little of the variation within lenses, whatever share of their light it
-    takes; a point source puts a spot in each lens, which its fit follows. Other fits' light
-    (``explained``, from :func:`render_fits`, less the fit's own) is taken off first; saturated
-    samples are left out.
+    takes; a point source puts a spot in each lens, which its fit follows, better than a spread
+    one does. Other fits' light (``explained``, from :func:`render_fits`, less the fit's own) is
+    taken off first; saturated samples are left out.
     """
     radius = _points(fit.sx_m, radius_m)[1]
 
@@ -182,7 +183,7 @@ def point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius
         return _point_pattern(image, table, fit.take(rows), radius[rows], background=background,
                               explained=explained, aperture_per_lens_plane=aperture_per_lens_plane,
                               blur_px=blur_px, saturation=saturation, spread_m=spread_m, cache=cache)
-    return _in_chunks(len(fit), part)
+    return _in_chunks(len(fit), part, columns=2)
 
 
 def _point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius_m: np.ndarray, *,
@@ -194,24 +195,30 @@ def _point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radiu
     raw = np.ascontiguousarray(image).reshape(-1)[table.pixel_index[g.ids]].astype(np.float64)
     uv = idx.uv(g.ids)
     own = _render_gathered(fit, idx, g, uv, aperture_per_lens_plane, blur_px)
-    pattern = own
-    if spread_m > 0:
-        pattern = own / 7.0
-        for a in np.arange(6) * np.pi / 3:
-            moved = dataclasses.replace(fit, sx_m=fit.sx_m + spread_m * np.cos(a), sy_m=fit.sy_m + spread_m * np.sin(a))
-            pattern = pattern + _render_gathered(moved, idx, g, uv, aperture_per_lens_plane, blur_px) / 7.0
+    spread = own / 7.0
+    for a in np.arange(6) * np.pi / 3:
+        moved = replace(fit, sx_m=fit.sx_m + spread_m * np.cos(a), sy_m=fit.sy_m + spread_m * np.sin(a))
+        spread += _render_gathered(moved, idx, g, uv, aperture_per_lens_plane, blur_px) / 7.0
     light = ((raw - table.black_level) / idx.weight(g.ids) - _at(background_per_sample(table, background), g.ids)
              - explained[g.ids] + own)
     use = (raw < saturation).astype(np.float64)
     lens = np.repeat(np.arange(g.sample_ptr.size - 1), np.diff(g.sample_ptr))
     count = np.maximum(np.bincount(lens, weights=use, minlength=g.sample_ptr.size - 1), 1.0)
-    dv = use * (light - (np.bincount(lens, weights=use * light, minlength=count.size) / count)[lens])
-    df = use * (pattern - (np.bincount(lens, weights=use * pattern, minlength=count.size) / count)[lens])
     owner = np.repeat(np.arange(n), np.diff(g.lens_ptr))[lens]
-    s_vf = np.bincount(owner, weights=dv * df, minlength=n)
-    s_vv = np.bincount(owner, weights=dv * dv, minlength=n)
-    s_ff = np.bincount(owner, weights=df * df, minlength=n)
-    return np.where(s_vf > 0, s_vf * s_vf / np.maximum(s_vv * s_ff, 1e-300), 0.0)
+
+    def centred(values: np.ndarray) -> np.ndarray:  # each lens's mean over its unsaturated samples taken out
+        return use * (values - (np.bincount(lens, weights=use * values, minlength=count.size) / count)[lens])
+
+    def per_fit(values: np.ndarray) -> np.ndarray:
+        return np.bincount(owner, weights=values, minlength=n)
+    dv = centred(light)
+    s_vv = per_fit(dv * dv)
+    out = np.empty((n, 2))
+    for k, pattern in enumerate((own, spread)):
+        df = centred(pattern)
+        s_vf = per_fit(dv * df)
+        out[:, k] = np.where(s_vf > 0, s_vf * s_vf / np.maximum(s_vv * per_fit(df * df), 1e-300), 0.0)
+    return out
 
 
 def _at(values: np.ndarray, ids: np.ndarray) -> np.ndarray:
@@ -243,9 +250,10 @@ def _points(*columns: np.ndarray) -> list[np.ndarray]:
     return np.broadcast_arrays(*(np.atleast_1d(np.asarray(c, dtype=np.float64)) for c in columns))
 
 
-def _in_chunks(n: int, part: Callable[[slice], np.ndarray]) -> np.ndarray:
-    """``part(rows)`` over slices of :data:`GATHER_CHUNK` of ``n`` rows, joined: one value per row."""
-    out = np.zeros(n)
+def _in_chunks(n: int, part: Callable[[slice], np.ndarray], columns: int = 1) -> np.ndarray:
+    """``part(rows)`` over slices of :data:`GATHER_CHUNK` of ``n`` rows, joined: one value (or
+    ``columns`` values) per row."""
+    out = np.zeros(n if columns == 1 else (n, columns))
     for start in range(0, n, GATHER_CHUNK):
         rows = slice(start, min(start + GATHER_CHUNK, n))
         out[rows] = part(rows)
