@@ -23,9 +23,9 @@ import argparse
 import json
 import os
 import resource
+import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Sequence
@@ -35,7 +35,7 @@ sys.path.insert(0, str(ROOT))
 os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".cache" / "numba"))
 
 import numpy as np  # noqa: E402
-from _common import check_free_disk  # noqa: E402
+from _common import check_free_disk, work_folder  # noqa: E402
 
 from analysis.simulation.scoring import BLUR_BINS, Score, depth_floor, score  # noqa: E402
 from analysis.cache import Cache  # noqa: E402
@@ -66,6 +66,13 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def case_folder(work: Path, scenario: str, seed: int, size: int, centre_z: float | None = None,
+                tag: str = "") -> Path:
+    """Where a case's simulated files and caches live under ``work``."""
+    return work / (f"{scenario}-{seed}-{size}" + ("" if centre_z is None else f"-z{centre_z:g}")
+                   + (f"-{tag}" if tag else ""))
+
+
 def prepare_case(work: Path, scenario: str, seed: int, size: int, centre_z: float | None = None,
                  simulate_args: Sequence[str] = (), tag: str = "") -> Path:
     """Simulate the case (once) and fill its calibration and look-up-table caches, in child processes.
@@ -73,8 +80,7 @@ def prepare_case(work: Path, scenario: str, seed: int, size: int, centre_z: floa
     ``simulate_args`` are passed on to ``plenodust simulate`` (e.g. realism options); ``tag`` names
     the case's folder apart from the plain one."""
     place = [] if centre_z is None else ["--centre-z", str(centre_z)]
-    folder = work / (f"{scenario}-{seed}-{size}" + ("" if centre_z is None else f"-z{centre_z:g}")
-                     + (f"-{tag}" if tag else ""))
+    folder = case_folder(work, scenario, seed, size, centre_z, tag)
     if not (folder / "scenario.json").is_file():  # written last: a killed simulation is done again
         # A full-frame case and its caches take about 0.6 + 0.5 GiB.
         check_free_disk(work, 1.1 * (size / 3280) ** 2, f"simulating {folder.name}")
@@ -123,11 +129,18 @@ def measure_case(folder: Path, params: PipelineParams, repeat: int, table_out: P
 
 def run_case(work: Path, scenario: str, seed: int, size: int, params_json: str, repeat: int,
              centre_z: float | None = None, simulate_args: Sequence[str] = (), tag: str = "",
-             table_out: Path | None = None) -> dict:
+             table_out: Path | None = None, keep_tables: bool = False) -> dict:
+    """Prepare, measure (in a fresh process) and score one case. Its look-up tables (about 0.5 GiB
+    per full-frame case) are deleted afterwards unless ``keep_tables``: a few dozen cases filled a
+    shared disk; the next run builds them again in :func:`prepare_case`."""
     folder = prepare_case(work, scenario, seed, size, centre_z, simulate_args, tag)
     table = [] if table_out is None else ["--table-out", str(table_out)]
-    out = subprocess.run([sys.executable, __file__, "--measure", str(folder), "--params", params_json,
-                          "--repeat", str(repeat), *table], check=True, cwd=ROOT, capture_output=True, text=True)
+    try:
+        out = subprocess.run([sys.executable, __file__, "--measure", str(folder), "--params", params_json,
+                              "--repeat", str(repeat), *table], check=True, cwd=ROOT, capture_output=True, text=True)
+    finally:
+        if not keep_tables:
+            shutil.rmtree(folder / "cache", ignore_errors=True)
     row = json.loads(out.stdout.strip().splitlines()[-1])
     row["score"] = Score(**row["score"])
     row.update(scenario=scenario, seed=seed)
@@ -148,7 +161,10 @@ def main() -> int:
     parser.add_argument("--size", type=int, default=3280)
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     parser.add_argument("--scenarios", nargs="+", default=["tilted-layer", "shadowing", "ball"])
-    parser.add_argument("--work", type=Path, default=None, help="keep simulated files here (default: a temp dir)")
+    parser.add_argument("--work", type=Path, default=None,
+                        help="keep simulated files here (default: a temporary folder, removed at the end)")
+    parser.add_argument("--keep-tables", action="store_true",
+                        help="keep each case's look-up tables under --work (0.5 GiB per full-frame case)")
     parser.add_argument("--repeat", type=int, default=3, help="timed runs per case (the fastest is shown)")
     parser.add_argument("--params", type=str, default="{}", help="PipelineParams overrides as JSON")
     parser.add_argument("--centre-z", type=float, default=None, metavar="MM",
@@ -163,15 +179,15 @@ def main() -> int:
         print(json.dumps(measure_case(args.measure, params, args.repeat, args.table_out), default=float))
         return 0
 
-    work = args.work or Path(tempfile.mkdtemp(prefix="plenodust-bench-"))
-    work.mkdir(parents=True, exist_ok=True)
     rows = []
-    for scenario in args.scenarios:
-        for seed in args.seeds:
-            rows.append(run_case(work, scenario, seed, args.size, args.params, args.repeat, args.centre_z))
-            r = rows[-1]
-            print(f"  done {scenario} seed {seed}: {r['score'].n_matched}/{r['score'].n_true} matched, "
-                  f"{r['wall_s']:.3f} s", flush=True)
+    with work_folder(args.work, "plenodust-bench-") as work:
+        for scenario in args.scenarios:
+            for seed in args.seeds:
+                rows.append(run_case(work, scenario, seed, args.size, args.params, args.repeat, args.centre_z,
+                                     keep_tables=args.keep_tables))
+                r = rows[-1]
+                print(f"  done {scenario} seed {seed}: {r['score'].n_matched}/{r['score'].n_true} matched, "
+                      f"{r['wall_s']:.3f} s", flush=True)
 
     span = (f"alpha {params.alpha_min} ... {params.alpha_max}" if params.alpha_min is not None
             else "the alpha range found from each exposure")

@@ -16,7 +16,8 @@ Usage::
     NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/bench_realism.py [--seeds 1 2]
         [--scenes layer ball-off] [--cases ideal blur all] [--size 3280] [--work DIR] [--json out.json]
 
-Simulated cases are kept under ``--work`` (default: a temporary folder) and reused when run again.
+Simulated cases are kept under ``--work`` and reused when run again (default: a temporary folder, removed
+at the end); their look-up tables only with ``--keep-tables``.
 """
 
 from __future__ import annotations
@@ -25,7 +26,6 @@ import argparse
 import json
 import math
 import sys
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,6 +35,7 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 
 import bench_pipeline  # noqa: E402
+from _common import work_folder  # noqa: E402
 from analysis.formats.exposure import read_exposure  # noqa: E402
 from analysis.formats.particle_table import read_csv  # noqa: E402
 from analysis.simulation.bound import position_bound  # noqa: E402
@@ -71,13 +72,13 @@ def simulate_args(case: str) -> list[str]:
     return [] if case == "ideal" else ["--realism", case]
 
 
-def run(work: Path, scene: Scene, case: str, seed: int, size: int, repeat: int) -> dict:
-    """Simulate, process and score one case (cached under ``work``)."""
+def run(work: Path, scene: Scene, case: str, seed: int, size: int, repeat: int, keep_tables: bool = False) -> dict:
+    """Simulate, process and score one case (its files kept under ``work``)."""
     tag = case
     table = work / f"{scene.name}-{seed}-{size}-{tag}.particles.csv"
     row = bench_pipeline.run_case(work, scene.scenario, seed, size, json.dumps(scene.params), repeat, scene.centre_z,
-                                  simulate_args(case), tag, table)
-    folder = bench_pipeline.prepare_case(work, scene.scenario, seed, size, scene.centre_z, simulate_args(case), tag)
+                                  simulate_args(case), tag, table, keep_tables=keep_tables)
+    folder = bench_pipeline.case_folder(work, scene.scenario, seed, size, scene.centre_z, tag)
     doc = json.loads((folder / "scenario.json").read_text())
     chamber = ChamberLight.from_dict(doc.get("realism", {}).get("chamber", {}))
     found = read_csv(table)
@@ -184,20 +185,22 @@ def main() -> int:
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     parser.add_argument("--size", type=int, default=3280)
     parser.add_argument("--repeat", type=int, default=1, help="timed runs per case (the fastest is shown)")
-    parser.add_argument("--work", type=Path, default=None, help="keep simulated files here (default: a temp dir)")
+    parser.add_argument("--work", type=Path, default=None,
+                        help="keep simulated files here (default: a temporary folder, removed at the end)")
+    parser.add_argument("--keep-tables", action="store_true",
+                        help="keep each case's look-up tables under --work (0.5 GiB per full-frame case)")
     parser.add_argument("--json", type=Path, default=None, help="also write every case's figures here")
     args = parser.parse_args()
-    work = args.work or Path(tempfile.mkdtemp(prefix="plenodust-realism-"))
-    work.mkdir(parents=True, exist_ok=True)
     rows = []
-    for scene in args.scenes:
-        for case in args.cases:
-            for seed in args.seeds:
-                r = run(work, SCENES[scene], case, seed, args.size, args.repeat)
-                rows.append(r)
-                s = r["score"]
-                print(f"  done {scene:9s} {case:12s} seed {seed}: {s.n_matched}/{s.n_true} matched, {s.n_found} found, "
-                      f"{r['on_reflection']} on a reflection, {r['wall_s']:.2f} s", flush=True)
+    with work_folder(args.work, "plenodust-realism-") as work:
+        for scene in args.scenes:
+            for case in args.cases:
+                for seed in args.seeds:
+                    r = run(work, SCENES[scene], case, seed, args.size, args.repeat, args.keep_tables)
+                    rows.append(r)
+                    s = r["score"]
+                    print(f"  done {scene:9s} {case:12s} seed {seed}: {s.n_matched}/{s.n_true} matched, "
+                          f"{s.n_found} found, {r['on_reflection']} on a reflection, {r['wall_s']:.2f} s", flush=True)
     report(rows, args.scenes, args.cases, args.seeds, args.size)
     if args.json is not None:
         args.json.write_text(json.dumps([{**r, "score": r["score"].to_dict()} for r in rows], indent=1, default=float))
