@@ -238,6 +238,22 @@ def test_wrong_image_or_alphas_are_refused(table):
         subaperture_image(image, table, fraction=0.0)
     with pytest.raises(ParameterError, match="method"):
         refocus_stack(image, table, method="nearest")
+    with pytest.raises(ParameterError, match="raw image or the samples"):
+        refocus_stack(None, table)
+    with pytest.raises(ParameterError, match="raw image or the samples"):
+        subaperture_image(None, table)
+
+
+@pytest.mark.parametrize("method", ["bilinear", "triangles"])
+def test_selected_samples_stand_for_the_image(model, table, method):
+    # The look-again pass lets its residual image go once its samples are selected.
+    image = sparse_random_exposure(model, seed=5)
+    samples = select_samples(image, table)
+    alphas = np.array([0.995, 1.0, 1.007])
+    assert np.array_equal(refocus_stack(None, table, alphas, samples=samples, method=method),
+                          refocus_stack(image, table, alphas, method=method))
+    assert np.array_equal(subaperture_image(None, table, samples=samples, method=method),
+                          subaperture_image(image, table, method=method))
 
 
 def test_alphas_for_depth_range_round_trip(model):

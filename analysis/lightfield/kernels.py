@@ -275,17 +275,6 @@ def splat_bilinear(ids, values, lens, lens_px, u, v, inv_step, coeffs, band_star
 
 
 @njit(parallel=True, fastmath=FASTMATH, cache=True)
-def scale_slices(out, scale):  # pragma: no cover - numba
-    """``out *= scale`` for (n_alpha, height, width) arrays, in parallel over rows."""
-    n_alpha, height, width = out.shape
-    for plane_row in prange(n_alpha * height):
-        a = plane_row // height
-        row = plane_row - a * height
-        for col in range(width):
-            out[a, row, col] *= scale[a, row, col]
-
-
-@njit(parallel=True, fastmath=FASTMATH, cache=True)
 def gaussian_blur(image, taps, out):  # pragma: no cover - numba
     """Separable blur of ``image`` (H, W) float32 with the odd-length kernel ``taps``, zero
     outside the image, into ``out``. (In numba rather than OpenCV so that one thread pool

@@ -183,7 +183,8 @@ def _refocus_into(table: LightFieldTable, ids: np.ndarray, values: np.ndarray, c
         kern.splat_bilinear(ids, values, table.lens, lens_px, table.u_m, table.v_m, 1.0 / grid.step_m,
                             coeffs, bands, out)
         if scale is not None:
-            kern.scale_slices(out, scale)
+            for plane, inv in zip(out, scale):  # slice by slice: the normalisation need not be one array
+                plane *= inv
         return out
     n_rows, n_cols = table.site_shape
     key = ("refocus", table.uid, "acc", n_rows * n_cols, coeffs.size)
@@ -232,8 +233,16 @@ def normalisation(table: LightFieldTable, alphas: np.ndarray, *, method: str = D
         (n_alpha, grid.height, grid.width) for "bilinear", (n_sites, n_alpha) for "triangles".
     """
     grid = table.grid if grid is None else grid
-    cache = Cache() if cache is None else cache
     method = _resolve_method(method, table, grid)
+    slices = _normalisation_slices(table, alphas, method, grid, keep, key_extra, min_coverage,
+                                   Cache() if cache is None else cache)
+    return np.stack(slices, axis=0 if method == "bilinear" else 1)
+
+
+def _normalisation_slices(table: LightFieldTable, alphas: np.ndarray, method: str, grid: ImageGrid,
+                          keep: np.ndarray | None, key_extra: bytes, min_coverage: float,
+                          cache: Cache) -> list[np.ndarray]:
+    """:func:`normalisation` as the cached slices, one per alpha (not copied into one array)."""
     coeffs = _coeffs(alphas)
     tail = (np.float32(min_coverage).tobytes() + key_extra + method.encode()
             + (_grid_key(grid) if method == "bilinear" else b""))
@@ -243,7 +252,7 @@ def normalisation(table: LightFieldTable, alphas: np.ndarray, *, method: str = D
     if missing:
         for a, inv in zip(missing, _inverse_coverage(table, coeffs[missing], method, grid, keep, min_coverage, cache)):
             slices[a] = cache.put(keys[a], inv)
-    return np.stack(slices, axis=0 if method == "bilinear" else 1)
+    return slices
 
 
 def _inverse_coverage(table: LightFieldTable, coeffs: np.ndarray, method: str, grid: ImageGrid,
@@ -293,7 +302,7 @@ def _sub_normalisation(table: LightFieldTable, fraction: float, method: str, gri
                          key_extra=b"sub" + np.float64(fraction).tobytes(), min_coverage=min_coverage, cache=cache)
 
 
-def refocus_stack(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray | None = None, *,
+def refocus_stack(image: np.ndarray | None, table: LightFieldTable, alphas: np.ndarray | None = None, *,
                   grid: ImageGrid | None = None, method: str = DEFAULT_METHOD, black_level: float | None = None,
                   background: float | BackgroundMap | None = None, noise_sigmas: float | None = 3.0,
                   min_coverage: float = DEFAULT_MIN_COVERAGE, samples: Samples | None = None,
@@ -302,8 +311,9 @@ def refocus_stack(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray 
 
     Parameters
     ----------
-    image : ndarray of shape (H, W), uint16
-        Raw sensor counts (the table's sensor size).
+    image : ndarray of shape (H, W), uint16, or None
+        Raw sensor counts (the table's sensor size); None when ``samples`` are given (the caller
+        may then let a large image go before the stack is made).
     table : LightFieldTable
     alphas : ndarray of shape (A,), optional
         Refocus parameters (virtual image plane at ``alpha * P``); default :func:`default_alphas`.
@@ -358,15 +368,27 @@ def refocus_stack(image: np.ndarray, table: LightFieldTable, alphas: np.ndarray 
         out = np.empty(shape, dtype=np.float32)
     elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
         raise ParameterError(f"out must be a C-contiguous float32 array of shape {shape}")
-    if samples is None:
-        samples = select_samples(image, table, black_level=black_level, background=background,
-                                 noise_sigmas=noise_sigmas)
+    samples = _selected(image, table, samples, black_level, background, noise_sigmas)
     cache = Cache() if cache is None else cache
-    inv = normalisation(table, alphas, method=method, grid=grid, min_coverage=min_coverage, cache=cache)
+    # The bilinear stack is scaled slice by slice from the cached slices: a stacked copy of
+    # them would be one more stack's worth of memory (23 MB full size) at a pass's peak.
+    inv = _normalisation_slices(table, alphas, method, grid, None, b"", min_coverage, cache)
+    if method != "bilinear":
+        inv = np.stack(inv, axis=1)
     return _refocus_into(table, samples.ids, samples.values, coeffs, method, grid, inv, out, cache)
 
 
-def subaperture_image(image: np.ndarray, table: LightFieldTable, *, fraction: float = 0.3,
+def _selected(image: np.ndarray | None, table: LightFieldTable, samples: Samples | None, black_level: float | None,
+              background: float | BackgroundMap | None, noise_sigmas: float | None) -> Samples:
+    """``samples``, or those :func:`select_samples` takes from ``image``."""
+    if samples is not None:
+        return samples
+    if image is None:
+        raise ParameterError("refocusing needs the raw image or the samples selected from it")
+    return select_samples(image, table, black_level=black_level, background=background, noise_sigmas=noise_sigmas)
+
+
+def subaperture_image(image: np.ndarray | None, table: LightFieldTable, *, fraction: float = 0.3,
                       blur_sigma_px: float = 1.0, grid: ImageGrid | None = None, method: str = DEFAULT_METHOD,
                       black_level: float | None = None, background: float | BackgroundMap | None = None,
                       noise_sigmas: float | None = 3.0, min_coverage: float = DEFAULT_MIN_COVERAGE,
@@ -381,8 +403,8 @@ def subaperture_image(image: np.ndarray, table: LightFieldTable, *, fraction: fl
 
     Parameters
     ----------
-    image : ndarray of shape (H, W), uint16
-        Raw sensor counts.
+    image : ndarray of shape (H, W), uint16, or None
+        Raw sensor counts; None when ``samples`` are given.
     table : LightFieldTable
     fraction : float
         Radius of the aperture part used, as a fraction of the aperture radius (0, 1].
@@ -405,9 +427,7 @@ def subaperture_image(image: np.ndarray, table: LightFieldTable, *, fraction: fl
     if blur_sigma_px < 0:
         raise ParameterError(f"blur_sigma_px must be >= 0, got {blur_sigma_px}")
     grid = table.grid if grid is None else grid
-    if samples is None:
-        samples = select_samples(image, table, black_level=black_level, background=background,
-                                 noise_sigmas=noise_sigmas)
+    samples = _selected(image, table, samples, black_level, background, noise_sigmas)
     method = _resolve_method(method, table, grid)
     cache = Cache() if cache is None else cache
     central = _central_samples(table, fraction, cache)

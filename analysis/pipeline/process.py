@@ -321,13 +321,17 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, background: Backgroun
     if len(peaks) == 0:
         return None
     explained = fitter.render(fit)
-    residual = residual_image(fitter.image, fitter.table, explained)
-    rs = select_samples(residual, table, background=background, noise_sigmas=params.noise_sigmas)
-    rstack = refocus_stack(residual, table, alphas, grid=fitter.grid, samples=rs, cache=fitter.cache)
-    rsub = subaperture_image(residual, table, fraction=params.aperture_fraction, blur_sigma_px=params.blur_sigma_px,
+    rs = select_samples(residual_image(fitter.image, fitter.table, explained), table, background=background,
+                        noise_sigmas=params.noise_sigmas)  # the residual image (21 MB) goes before the stack
+    # The fits so far touched much of the fit table (60-100 MB on a frame with many candidates):
+    # its pages go back while the stack is made, and are read in again from the file cache.
+    release_refocus_pages(fitter.table, fitter.cache)
+    trim_heap()
+    rstack = refocus_stack(None, table, alphas, grid=fitter.grid, samples=rs, cache=fitter.cache)
+    rsub = subaperture_image(None, table, fraction=params.aperture_fraction, blur_sigma_px=params.blur_sigma_px,
                              grid=fitter.grid, samples=rs, cache=fitter.cache)
     new, new_tracks = locate(products(rstack, rsub, out=rstack), alphas, params, threshold=threshold)
-    del residual, rs, rstack, rsub  # not needed by the fits below (an F01's: 40 MB and more)
+    del rs, rstack, rsub  # not needed by the fits below (an F01's: 40 MB and more)
     # Every candidate above the noise is fitted: a screen by peak height against the found
     # particles whose light reaches it (0.03 of theirs) dropped faint particles that the tests
     # after the fit keep (30 more found on 63 realistic exposures, one more false, 1.04-1.08x time).
