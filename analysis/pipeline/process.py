@@ -350,7 +350,7 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, background: Backgroun
             | outshines_misfit(new_fit, misfit_dn))
     if not good.all():
         rest = np.flatnonzero(~good)
-        good[rest] = converges(fitter, new_fit.take(rest), explained + fitter.render(new_fit))
+        good[rest] = converges(fitter, new_fit.take(rest), explained + fitter.render(new_fit.take(good)))
     fitter.reject(new.take(~good), new_fit.take(~good), "weak_residual")
     new, new_fit = new.take(good), new_fit.take(good)
     if len(new) == 0:
