@@ -89,14 +89,19 @@ def refit_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, 
     particle as the earlier stages left it taken off. :func:`deblend` took each one's neighbours'
     first fits off, and those neighbours moved in that same refit; blurred particles' light
     overlaps many neighbours', so they gain most from a second round. A refit replaces the fit
-    only where it is acceptable; no particle is dropped here."""
+    only where it is acceptable. The refits move fits along their lines of sight: those that then
+    sit on a brighter one's with too little evidence of their own (:func:`weak_partners`) are
+    dropped as ``seen_twice``, as :func:`deblend` drops them."""
     rows = np.flatnonzero(fitter.strongly_blurred(fit.alpha))
     if rows.size == 0:
         return peaks, fit
     sub = fit.take(rows)
     new = fitter.fit(sub.sx_m, sub.sy_m, sub.alpha, subtract=fitter.render(fit), own=sub, recentre=DEBLEND_RECENTRE)
     ok = np.flatnonzero(fitter.acceptable(new))
-    return replace_fits(fitter.grid, peaks, fit, rows[ok], new.take(ok))
+    peaks, fit = replace_fits(fitter.grid, peaks, fit, rows[ok], new.take(ok))
+    weak = weak_partners(fitter, fit)
+    fitter.reject(peaks.take(weak), fit.take(weak), "seen_twice")
+    return peaks.take(~weak), fit.take(~weak)
 
 
 def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
