@@ -320,21 +320,12 @@ def grid_costs(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, c
                             base[n_pt, 1] = p1 + shift_t[w, 1] + c * sub_t[q, 1]
                             base[n_pt, 2] = p2 + shift_t[w, 2] + c * sub_t[q, 2]
                             n_pt += 1
-                    _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, lat_t, cnt, open_pts)
-                    # Where points land in the cell, the per-candidate shortcut still applies: the
-                    # footprint around the ray, or around one of its six crosstalk rays (whether
-                    # or not a point sees that neighbour), must meet the cell by the margin.
+                    if not _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, lat_t, cnt, open_pts):
+                        continue  # no point lands in the cell at any position
+                    # A point in the cell puts the footprint around its own ray within the margin
+                    # of the cell, so the per-candidate shortcut needs no test of its own here.
                     for q in range(n_pos):
-                        f = 0.0
-                        if cnt[q] > 0.0 and within[q]:
-                            for w in range(7):
-                                a0 = abs(p0 + shift_t[w, 0] + d0[q])
-                                a1 = abs(p1 + shift_t[w, 1] + d1[q])
-                                a2 = abs(p2 + shift_t[w, 2] + d2[q])
-                                if not ((a0 - margin > h0) or (a1 - margin > h1) or (a2 - margin > h2)):
-                                    f = cnt[q] / n_ap[i]
-                                    break
-                        frac[q] = f
+                        frac[q] = cnt[q] / n_ap[i] if within[q] else 0.0
                 v = values[j]
                 if n_cens > 0 and censored[j]:
                     for q in range(n_pos):
@@ -519,7 +510,8 @@ def _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, lat_t, cnt, open_pts):
     Points inside (or beyond a side) by more than the positions' reach along each normal
     (``lat_t``, with a hair of slack) are so at every position and counted once: this count took
     40 % of a fit's time, and most points of a footprint that straddles a cell edge lie well
-    inside or outside. The counts are the same as testing every point at every position."""
+    inside or outside. The counts are the same as testing every point at every position.
+    Returns whether any point can be in the cell at some position."""
     n_pos = cnt.shape[0]
     n_in = 0.0
     n_open = 0
@@ -541,6 +533,7 @@ def _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, lat_t, cnt, open_pts):
         b2 = base[i, 2]
         for q in range(n_pos):
             cnt[q] += 1.0 if (abs(b0 + d0[q]) <= h0) & (abs(b1 + d1[q]) <= h1) & (abs(b2 + d2[q]) <= h2) else 0.0
+    return n_in > 0.0 or n_open > 0
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
