@@ -541,3 +541,34 @@ def test_refitting_crowded_blurred_particles_without_their_neighbours_light():
     # The same refit with the neighbours' light left in does not get there.
     plain = fitter.fit(first.sx_m, first.sy_m, first.alpha)
     assert rms(again) < 0.6 * rms(plain), (rms(plain), rms(again))
+
+
+def _refit_pair(alphas, truth_alphas, brightness):
+    """:func:`refit_blurred` on two fits on one chief ray (as :func:`_pair_fits` makes them)."""
+    from analysis.detection.curves import Peaks
+    from analysis.detection.rejections import Rejections
+    from analysis.depth.deblend import refit_blurred
+
+    fitter, fit = _pair_fits(alphas, truth_alphas, brightness)
+    fitter = dataclasses.replace(fitter, rejected=Rejections())
+    x, y = fitter.grid.to_pixels(fit.sx_m, fit.sy_m)
+    peaks = Peaks(track=np.arange(2), alpha=fit.alpha, x=np.asarray(x, float), y=np.asarray(y, float),
+                  peak_height=np.ones(2), peak_width=np.ones(2), residual=fit.residual, prominence=np.ones(2))
+    assert fitter.strongly_blurred(fit.alpha).all()
+    _, kept = refit_blurred(fitter, peaks, fit)
+    return fitter, kept
+
+
+def test_the_last_refit_drops_a_second_fit_of_one_blurred_particle():
+    """The last refit moves fits along their lines of sight after deblending's partner test: two fits
+    of one particle blurred over 7 pitches leave it as one, the other recorded as seen twice."""
+    fitter, kept = _refit_pair([1.0116, 1.0128], [1.0122], [2400.0])
+    assert len(kept) == 1 and abs(kept.alpha[0] - 1.0122) < 4e-4, kept.alpha
+    assert fitter.rejected.counts() == {"seen_twice": 1}
+
+
+def test_the_last_refit_keeps_a_blurred_pair_on_one_line_of_sight():
+    truth = [1.0100, 1.0160]
+    fitter, kept = _refit_pair(truth, truth, [2400.0, 2000.0])
+    assert len(kept) == 2 and np.allclose(np.sort(kept.alpha), truth, atol=4e-4), kept.alpha
+    assert len(fitter.rejected) == 0

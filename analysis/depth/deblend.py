@@ -91,17 +91,29 @@ def refit_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, 
     overlaps many neighbours', so they gain most from a second round. A refit replaces the fit
     only where it is acceptable. The refits move fits along their lines of sight: those that then
     sit on a brighter one's with too little evidence of their own (:func:`weak_partners`) are
-    dropped as ``seen_twice``, as :func:`deblend` drops them."""
+    dropped as ``seen_twice``, as :func:`deblend` drops them, and the fits their light overlaps
+    are refitted once more without it."""
     rows = np.flatnonzero(fitter.strongly_blurred(fit.alpha))
+    if rows.size == 0:
+        return peaks, fit
+    peaks, fit = _refit_where_acceptable(fitter, peaks, fit, rows)
+    weak = weak_partners(fitter, fit)
+    if not weak.any():
+        return peaks, fit
+    fitter.reject(peaks.take(weak), fit.take(weak), "seen_twice")
+    near = ~weak & _overlapping(fitter.table, fit, np.flatnonzero(weak), pad_pitches=2.0)
+    keep = np.flatnonzero(~weak)
+    return _refit_where_acceptable(fitter, peaks.take(keep), fit.take(keep), np.flatnonzero(near[keep]))
+
+
+def _refit_where_acceptable(fitter: RayFitter, peaks: Peaks, fit: RayFit, rows: np.ndarray) -> tuple[Peaks, RayFit]:
+    """``rows`` refitted with every other fit's light taken off, where the refit is acceptable."""
     if rows.size == 0:
         return peaks, fit
     sub = fit.take(rows)
     new = fitter.fit(sub.sx_m, sub.sy_m, sub.alpha, subtract=fitter.render(fit), own=sub, recentre=DEBLEND_RECENTRE)
     ok = np.flatnonzero(fitter.acceptable(new))
-    peaks, fit = replace_fits(fitter.grid, peaks, fit, rows[ok], new.take(ok))
-    weak = weak_partners(fitter, fit)
-    fitter.reject(peaks.take(weak), fit.take(weak), "seen_twice")
-    return peaks.take(~weak), fit.take(~weak)
+    return replace_fits(fitter.grid, peaks, fit, rows[ok], new.take(ok))
 
 
 def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
