@@ -77,7 +77,7 @@ from .depth_range import SURVEY_GRID, edge_maxima, lattice_step, range_of_peaks,
 from .params import PipelineParams
 from .result import Result
 from .stages import Progress, StageClock, trim_heap
-from .tables import drifted_fit_table, get_table, normalisation_keys, release_refocus_pages, save_normalisations
+from .tables import drifted_fit_table, get_table, normalisation_keys, release_table_pages, save_normalisations
 
 log = logging.getLogger(__name__)
 
@@ -206,7 +206,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                             f"{alphas[-1]:.4f}; check the exposure and the threshold")
             return finish(_no_peaks(), None, None, sub, threshold)
         limits, alphas = (alphas[0], alphas[-1]), found
-        release_refocus_pages(table, cache, columns=False)  # the survey's normalisations: done with
+        release_table_pages(table, cache, columns=False)  # the survey's normalisations: done with
         trim_heap()  # and its stack
     else:
         limits = (alphas[0], alphas[-1])
@@ -221,7 +221,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     samples = product = None
     if not keep_stack:
         stack = None
-    release_refocus_pages(table, cache)  # until another detection pass refocuses (below)
+    release_table_pages(table, cache)  # until another detection pass refocuses (below)
     trim_heap()
     if params.user_range:
         low, high = edge_maxima(tracks.brightness)
@@ -242,7 +242,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                 if found is None:
                     break
                 peaks, tracks, fit = found
-            release_refocus_pages(table, cache)
+            release_table_pages(table, cache)
             trim_heap()
         if params.deblend and len(peaks) > 1:
             with clock.stage("deblend"):
@@ -325,7 +325,7 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, background: Backgroun
                         noise_sigmas=params.noise_sigmas)  # the residual image (21 MB) goes before the stack
     # The fits so far touched much of the fit table (60-100 MB on a frame with many candidates):
     # its pages go back while the stack is made, and are read in again from the file cache.
-    release_refocus_pages(fitter.table, fitter.cache)
+    release_table_pages(fitter.table, fitter.cache)
     trim_heap()
     rstack = refocus_stack(None, table, alphas, grid=fitter.grid, samples=rs, cache=fitter.cache)
     rsub = subaperture_image(None, table, fraction=params.aperture_fraction, blur_sigma_px=params.blur_sigma_px,
