@@ -593,3 +593,18 @@ def test_a_wide_glint_fits_as_a_point_but_shows_no_point_pattern(alpha):
         fitter, _, fit = _one_fit(model, table, s_hat, image, alpha)
         assert fitter.acceptable(fit, 0.2)[0] and abs(fit.alpha[0] - alpha) < 0.003
         assert patterned(fitter, fit, fitter.render(fit))[0] == is_point
+
+
+def test_a_faint_partner_in_focus_behind_a_brighter_one_is_kept():
+    """A pair on one line of sight, the fainter (a third of the light) in focus, the brighter
+    blurred over 1.5 pitches (held-out shadowing seed 11 lost such a partner): the fainter lights
+    its lens evenly, so no point pattern can vouch for it, but the pair explains the pixels more
+    than 1.3 times better than the brighter one alone."""
+    from analysis.depth.deblend import weak_partners
+
+    truth = [0.99480, 1.00030]
+    fitter, fit = _pair_fits(truth, truth, [2900.0, 950.0])
+    assert np.allclose(fit.alpha, truth, atol=4e-4), fit.alpha
+    faint = int(np.argmin(fit.intensity))
+    assert fit.intensity[faint] < 0.35 * fit.intensity.max()  # less light than a probe needs
+    assert not weak_partners(fitter, fit).any()
