@@ -608,3 +608,24 @@ def test_a_faint_partner_in_focus_behind_a_brighter_one_is_kept():
     faint = int(np.argmin(fit.intensity))
     assert fit.intensity[faint] < 0.35 * fit.intensity.max()  # less light than a probe needs
     assert not weak_partners(fitter, fit).any()
+
+
+def test_a_strongly_blurred_particle_converges_clearly_a_wide_glint_does_not():
+    """Blurred over 6 pitches, a lone particle's light is explained no better by its point pattern
+    than by the same light spread over a pitch (the ratio test fails it), but its pattern explains
+    most of the light's variation in its lenses; a wide glint's explains almost none."""
+    from analysis.depth.quality import converges
+    from analysis.simulation.chamber import ChamberLight, ExtendedSource
+
+    alpha = 1.02
+    model, table, s_hat, particle = _line_of_sight_scene([alpha], [600.0])
+    z = float(model.optics.z_of_alpha(alpha))
+    glint = ExtendedSource(kind="glint", z_mm=z, x_mm=s_hat[0] * z / model.optics.exit_pupil_m,
+                           y_mm=s_hat[1] * z / model.optics.exit_pupil_m, sigma_mm=0.27, level_dn=3300.0)
+    glint_image = render_exposure(model, Particles(*(np.zeros(0),) * 4), seed=5,
+                                  chamber=ChamberLight(sources=(glint,)))
+    for image, clearly in ((particle, True), (glint_image, False)):
+        fitter, _, fit = _one_fit(model, table, s_hat, image, alpha)
+        explained = fitter.render(fit)
+        assert not converges(fitter, fit, explained)[0]
+        assert converges(fitter, fit, explained, clear=True)[0] == clearly

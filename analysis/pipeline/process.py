@@ -357,7 +357,8 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, background: Backgroun
             | outshines_misfit(new_fit, misfit_dn))
     if not good.all():
         rest = np.flatnonzero(~good)
-        good[rest] = converges(fitter, new_fit.take(rest), explained + fitter.render(new_fit.take(good)))
+        good[rest] = converges(fitter, new_fit.take(rest), explained + fitter.render(new_fit.take(good)),
+                               clear=True)
     fitter.reject(new.take(~good), new_fit.take(~good), "weak_residual")
     new, new_fit = new.take(good), new_fit.take(good)
     if len(new) == 0:
