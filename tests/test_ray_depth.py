@@ -574,22 +574,26 @@ def test_the_last_refit_keeps_a_blurred_pair_on_one_line_of_sight():
     assert len(fitter.rejected) == 0
 
 
+def _glint_image(model, s_hat, alpha):
+    """A glint 0.27 mm across (as held-out seed 10's) on the chief ray ``s_hat``, at the depth of
+    ``alpha``, alone on the sensor of :func:`_line_of_sight_scene`."""
+    from analysis.simulation.chamber import ChamberLight, ExtendedSource
+
+    z = float(model.optics.z_of_alpha(alpha))
+    glint = ExtendedSource(kind="glint", z_mm=z, x_mm=s_hat[0] * z / model.optics.exit_pupil_m,
+                           y_mm=s_hat[1] * z / model.optics.exit_pupil_m, sigma_mm=0.27, level_dn=3300.0)
+    return render_exposure(model, Particles(*(np.zeros(0),) * 4), seed=5, chamber=ChamberLight(sources=(glint,)))
+
+
 @pytest.mark.parametrize("alpha", [0.967, 1.03])
 def test_a_wide_glint_fits_as_a_point_but_shows_no_point_pattern(alpha):
     """A glint 0.27 mm across far out of focus (seed 10's off-focus ball had one 11 mm behind focus,
     which set the end of the depth range the survey found) fits as a blurred point with a small
     misfit; the light in its lenses does not follow that point, while a particle's there does."""
     from analysis.depth.quality import patterned
-    from analysis.simulation.chamber import ChamberLight, ExtendedSource
 
     model, table, s_hat, particle = _line_of_sight_scene([alpha], [1000.0])
-    optics = model.optics
-    z = float(optics.z_of_alpha(alpha))
-    glint = ExtendedSource(kind="glint", z_mm=z, x_mm=s_hat[0] * z / optics.exit_pupil_m,
-                           y_mm=s_hat[1] * z / optics.exit_pupil_m, sigma_mm=0.27, level_dn=3300.0)
-    glint_image = render_exposure(model, Particles(*(np.zeros(0),) * 4), seed=5,
-                                  chamber=ChamberLight(sources=(glint,)))
-    for image, is_point in ((particle, True), (glint_image, False)):
+    for image, is_point in ((particle, True), (_glint_image(model, s_hat, alpha), False)):
         fitter, _, fit = _one_fit(model, table, s_hat, image, alpha)
         assert fitter.acceptable(fit, 0.2)[0] and abs(fit.alpha[0] - alpha) < 0.003
         assert patterned(fitter, fit, fitter.render(fit))[0] == is_point
@@ -615,16 +619,10 @@ def test_a_strongly_blurred_particle_converges_clearly_a_wide_glint_does_not():
     than by the same light spread over a pitch (the ratio test fails it), but its pattern explains
     most of the light's variation in its lenses; a wide glint's explains almost none."""
     from analysis.depth.quality import converges
-    from analysis.simulation.chamber import ChamberLight, ExtendedSource
 
     alpha = 1.02
     model, table, s_hat, particle = _line_of_sight_scene([alpha], [600.0])
-    z = float(model.optics.z_of_alpha(alpha))
-    glint = ExtendedSource(kind="glint", z_mm=z, x_mm=s_hat[0] * z / model.optics.exit_pupil_m,
-                           y_mm=s_hat[1] * z / model.optics.exit_pupil_m, sigma_mm=0.27, level_dn=3300.0)
-    glint_image = render_exposure(model, Particles(*(np.zeros(0),) * 4), seed=5,
-                                  chamber=ChamberLight(sources=(glint,)))
-    for image, clearly in ((particle, True), (glint_image, False)):
+    for image, clearly in ((particle, True), (_glint_image(model, s_hat, alpha), False)):
         fitter, _, fit = _one_fit(model, table, s_hat, image, alpha)
         explained = fitter.render(fit)
         assert not converges(fitter, fit, explained)[0]

@@ -89,16 +89,19 @@ def patterned(fitter: RayFitter, fit: RayFit, explained: np.ndarray) -> np.ndarr
     fits as a blurred point with a small misfit, explains almost nothing (0.02; the survey's fits
     of real particles on the realistic scenes of seeds 1-10 mostly 0.15-0.9, a few crowded or
     misfitting ones less, never one at the end of a range). ``explained``: as for :func:`converges`."""
-    point, _ = _patterns(fitter, fit, explained)
+    point, _ = _patterns(fitter, fit, explained, spread=False)
     return (point > EXTENDED_POINT_PATTERN) | (fitter.blur_radius_m(fit.alpha) < fitter.pitch_m)
 
 
-def _patterns(fitter: RayFitter, fit: RayFit, explained: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`analysis.depth.rayfit.point_pattern` over each fit's blur disk and half a pitch more."""
+def _patterns(fitter: RayFitter, fit: RayFit, explained: np.ndarray, *,
+              spread: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`analysis.depth.rayfit.point_pattern` over each fit's blur disk and half a pitch more
+    (the spread source one pitch across; without ``spread``, NaN)."""
     return point_pattern(fitter.image, fitter.table, fit, fitter.blur_radius_m(fit.alpha) + 0.5 * fitter.pitch_m,
                          background=fitter.background, explained=explained,
-                         aperture_per_lens_plane=fitter.aperture_per_lens_plane, spread_m=fitter.pitch_m,
-                         blur_px=fitter.blur_px, saturation=fitter.saturation, cache=fitter.cache).T
+                         aperture_per_lens_plane=fitter.aperture_per_lens_plane,
+                         spread_m=fitter.pitch_m if spread else None, blur_px=fitter.blur_px,
+                         saturation=fitter.saturation, cache=fitter.cache).T
 
 
 def drop_extended(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit, np.ndarray]:

@@ -163,13 +163,14 @@ def unexplained_light(image: np.ndarray, table: LightFieldTable, sx_m: np.ndarra
 
 def point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius_m: np.ndarray, *,
                   background: float | np.ndarray, explained: np.ndarray, aperture_per_lens_plane: float,
-                  spread_m: float, blur_px: float = DEFAULT_BLUR_PX, saturation: float = 4095.0,
+                  spread_m: float | None, blur_px: float = DEFAULT_BLUR_PX, saturation: float = 4095.0,
                   cache: Cache | None = None) -> np.ndarray:
     """Per fit, how much of the variation of the light within the lenses (each lens's own mean
     level taken out) its point-source pattern explains, and how much the same fit spread over a
     source ``spread_m`` across does (its centre and six points on a ring): the squared
     correlations, pooled over the lenses within ``radius_m`` of it, between that light and each
-    pattern, 0 where they anticorrelate. Returns an array of shape ``(n, 2)``: point, spread.
+    pattern, 0 where they anticorrelate. Returns an array of shape ``(n, 2)``: point, spread
+    (NaN with ``spread_m`` None: six renders fewer where only the point's share is wanted).
 
     Extended light (a reflection, glow, glare) lights each micro-image nearly evenly, so a fit
     on it explains little of the variation within lenses, whatever share of their light it
@@ -188,17 +189,19 @@ def point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius
 
 def _point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius_m: np.ndarray, *,
                    background: float | np.ndarray, explained: np.ndarray, aperture_per_lens_plane: float,
-                   blur_px: float, saturation: float, spread_m: float, cache: Cache | None) -> np.ndarray:
+                   blur_px: float, saturation: float, spread_m: float | None, cache: Cache | None) -> np.ndarray:
     n = len(fit)
     idx = table_index(table, cache)
     g = idx.gather(fit.sx_m, fit.sy_m, radius_m)
     raw = np.ascontiguousarray(image).reshape(-1)[table.pixel_index[g.ids]].astype(np.float64)
     uv = idx.uv(g.ids)
     own = _render_gathered(fit, idx, g, uv, aperture_per_lens_plane, blur_px)
-    spread = own / 7.0
-    for a in np.arange(6) * np.pi / 3:
-        moved = replace(fit, sx_m=fit.sx_m + spread_m * np.cos(a), sy_m=fit.sy_m + spread_m * np.sin(a))
-        spread += _render_gathered(moved, idx, g, uv, aperture_per_lens_plane, blur_px) / 7.0
+    spread = None
+    if spread_m is not None:
+        spread = own / 7.0
+        for a in np.arange(6) * np.pi / 3:
+            moved = replace(fit, sx_m=fit.sx_m + spread_m * np.cos(a), sy_m=fit.sy_m + spread_m * np.sin(a))
+            spread += _render_gathered(moved, idx, g, uv, aperture_per_lens_plane, blur_px) / 7.0
     light = ((raw - table.black_level) / idx.weight(g.ids) - _at(background_per_sample(table, background), g.ids)
              - explained[g.ids] + own)
     use = (raw < saturation).astype(np.float64)
@@ -213,8 +216,10 @@ def _point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radiu
         return np.bincount(owner, weights=values, minlength=n)
     dv = centred(light)
     s_vv = per_fit(dv * dv)
-    out = np.empty((n, 2))
+    out = np.full((n, 2), np.nan)
     for k, pattern in enumerate((own, spread)):
+        if pattern is None:
+            continue
         df = centred(pattern)
         s_vf = per_fit(dv * df)
         out[:, k] = np.where(s_vf > 0, s_vf * s_vf / np.maximum(s_vv * per_fit(df * df), 1e-300), 0.0)
