@@ -574,14 +574,14 @@ def test_the_last_refit_keeps_a_blurred_pair_on_one_line_of_sight():
     assert len(fitter.rejected) == 0
 
 
-def _glint_image(model, s_hat, alpha):
+def _glint_image(model, s_hat, alpha, level_dn=3300.0):
     """A glint 0.27 mm across (as held-out seed 10's) on the chief ray ``s_hat``, at the depth of
     ``alpha``, alone on the sensor of :func:`_line_of_sight_scene`."""
     from analysis.simulation.chamber import ChamberLight, ExtendedSource
 
     z = float(model.optics.z_of_alpha(alpha))
     glint = ExtendedSource(kind="glint", z_mm=z, x_mm=s_hat[0] * z / model.optics.exit_pupil_m,
-                           y_mm=s_hat[1] * z / model.optics.exit_pupil_m, sigma_mm=0.27, level_dn=3300.0)
+                           y_mm=s_hat[1] * z / model.optics.exit_pupil_m, sigma_mm=0.27, level_dn=level_dn)
     return render_exposure(model, Particles(*(np.zeros(0),) * 4), seed=5, chamber=ChamberLight(sources=(glint,)))
 
 
@@ -627,3 +627,24 @@ def test_a_strongly_blurred_particle_converges_clearly_a_wide_glint_does_not():
         explained = fitter.render(fit)
         assert not converges(fitter, fit, explained)[0]
         assert converges(fitter, fit, explained, clear=True)[0] == clearly
+
+
+def test_a_blurred_particle_in_a_glints_light_is_kept_where_its_light_clearly_converges():
+    """Far from focus, real particles in crowds sit in light nothing explains (missed neighbours',
+    a glint's): the extended test then asks whether their own light converges to a point. A lone
+    particle blurred over 6 pitches beside an in-focus glint fails the ratio test there, but its
+    pattern clearly explains its lenses' light, so it is kept."""
+    from analysis.depth.quality import converges, drop_extended, leftover_fraction
+
+    alpha = 1.02
+    model, table, s_hat, particle = _line_of_sight_scene([alpha], [600.0])
+    glint = _glint_image(model, s_hat + 4.0 * table.basis_m[:, 0], 1.0, level_dn=100.0)
+    image = np.clip(particle.astype(float) + glint - float(table.black_level), 0, 4095).astype(np.uint16)
+    fitter, peaks, fit = _one_fit(model, table, s_hat, image, alpha)
+    assert abs(fit.alpha[0] - alpha) < 0.002
+    explained = fitter.render(fit)
+    assert leftover_fraction(fitter, fit, explained)[0] > 0.5  # the glint's light is around it ...
+    assert leftover_fraction(fitter, fit, explained, reach_pitches=0.5)[0] > 0.4  # ... and on it
+    assert not converges(fitter, fit, explained)[0]
+    kept, _, _ = drop_extended(fitter, peaks, fit)
+    assert len(kept) == 1
