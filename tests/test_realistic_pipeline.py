@@ -130,6 +130,24 @@ def test_particles_on_compact_glints_are_kept_and_the_glints_yield_none(z_mm, at
     assert np.count_nonzero(result.rejected["reason"] == "extended") >= 9
 
 
+def test_a_compact_glint_far_in_front_of_the_particles_yields_no_particle():
+    """A compact glint (0.08 mm) 8 mm in front of particles 1-2 mm in front of focus, as held-out
+    cloud seed 21 had: its blurred disk covers the particles' range of depths and was tiled by
+    point fits at depths beyond that range (14 here), each leaving too little of its light
+    unexplained to count as extended. Fits may now leave the range found from the exposure by a
+    few steps only."""
+    gx, gy = np.meshgrid([-1.2, 0.0, 1.2], [-1.2, 0.0, 1.2])
+    z = 57.5 + np.random.default_rng(2).uniform(-1.0, 1.0, gx.size)
+    grid = Particles(gx.ravel(), gy.ravel(), z, np.full(gx.size, 1500.0))
+    glint = ExtendedSource(kind="glint", z_mm=49.8, x_mm=0.6, y_mm=0.6, sigma_mm=0.08, level_dn=2400.0)
+    result, truth, model = _process(grid, chamber=ChamberLight(sources=(glint,)))
+    assert truth["X"].size == 9
+    assert float(model.optics.alpha_of_z(49.8)) > result.alphas[-1] + 0.02  # far beyond the range
+    s = score(result.particles, truth, nn_mm=mean_nn_distance(truth["X"], truth["Y"], truth["Z"]))
+    assert s.n_matched >= 8 and _all_real(result, grid), s
+    assert np.count_nonzero(result.rejected["reason"] == "outside_range") > 0
+
+
 def _pairs_on_lines_of_sight(seed: int, partner_dn: float):
     """Nine pairs on one line of sight each, 1-2 mm apart in depth, the bright one of 5000 DN and
     its partner of ``partner_dn``, processed: the pairs, their score."""

