@@ -83,17 +83,15 @@ def converges(fitter: RayFitter, fit: RayFit, explained: np.ndarray, *, clear: b
 
 
 def patterned(fitter: RayFitter, fit: RayFit, explained: np.ndarray) -> np.ndarray:
-    """Fits (a mask) whose point pattern clearly explains the variation of the light within their
-    lenses (more than :data:`CLEAR_POINT_PATTERN` of it), or blurred less than a lens pitch (their
-    light fills one lens or a few: no pattern to follow). Weaker than :func:`converges`, which real
+    """Fits (a mask) whose point pattern explains more than :data:`EXTENDED_POINT_PATTERN` of the
+    variation of the light within their lenses, or blurred less than a lens pitch (their light
+    fills one lens or a few: no pattern to follow). Weaker than :func:`converges`, which real
     particles blurred over several pitches in crowds fail; a wide glint far out of focus, which
-    fits as a blurred point with a small misfit, explains almost nothing (0.02). The survey's fits
-    of real particles on the realistic scenes of seeds 1-10 explain mostly 0.15-0.9, a few crowded
-    or misfitting ones less, never one at the end of a range; at 0.1 a reflection 15 pitches out
-    of focus (0.108, alone 0.016 in alpha beyond the particles' fits at 0.7-0.9) set the range of
-    held-out shadowing seed 20 and became a particle. ``explained``: as for :func:`converges`."""
+    fits as a blurred point with a small misfit, explains almost nothing (0.02; the survey's fits
+    of real particles on the realistic scenes of seeds 1-10 mostly 0.15-0.9, a few crowded or
+    misfitting ones less, never one at the end of a range). ``explained``: as for :func:`converges`."""
     point, _ = _patterns(fitter, fit, explained, spread=False)
-    return (point > CLEAR_POINT_PATTERN) | (fitter.blur_radius_m(fit.alpha) < fitter.pitch_m)
+    return (point > EXTENDED_POINT_PATTERN) | (fitter.blur_radius_m(fit.alpha) < fitter.pitch_m)
 
 
 def _patterns(fitter: RayFitter, fit: RayFit, explained: np.ndarray, *,
