@@ -1,6 +1,6 @@
-"""Extended light behind the samples, and the depth fit's table of a drifted lattice, against slow
-numpy versions of the same rules on a realistic crop (glow gradient, a reflection band, hot pixels,
-a drifted lattice)."""
+"""Extended light behind the samples, the noise about it, and the depth fit's table of a drifted
+lattice, against slow numpy versions of the same rules on a realistic crop (glow gradient, a
+reflection band, hot pixels, a drifted lattice), and against the simulated camera's noise."""
 
 from __future__ import annotations
 
@@ -14,13 +14,22 @@ from analysis.calibration.cache import load_calibration
 from analysis.calibration.calibrate import repaired
 from analysis.calibration.drift import LatticeDrift
 from analysis.formats.exposure import read_exposure
-from analysis.lightfield.background import BackgroundMap, estimate_background
-from analysis.lightfield.samples import background_and_noise
+from analysis.calibration.calibrate import calibrate
+from analysis.camera.model import CameraModel
+from analysis.formats.whites import WhiteImage
+from analysis.lightfield.background import CENTRAL_FRACTION, BackgroundMap, estimate_background, local_noise
+from analysis.lightfield.samples import background_and_noise, select_samples
 from analysis.lightfield.table import shifted_table
 from analysis.order_statistics import median_of_5
 from analysis.pipeline.tables import FIT_TABLE_RIM_PX, drifted_fit_table, get_table
+from analysis.simulation.camera import (ELECTRONS_PER_DN, READ_NOISE_DN, simulated_camera_metadata,
+                                        simulated_private_metadata)
+from analysis.simulation.camera_effects import CameraEffects
+from analysis.simulation.chamber import ChamberLight, ExtendedSource
 from analysis.simulation.realism import Realism
+from analysis.simulation.render import render_exposure, render_white_image
 from analysis.simulation.scenario_files import write_scenario
+from analysis.simulation.scenarios import Particles
 
 
 @pytest.fixture(scope="module")
@@ -78,6 +87,81 @@ def test_level_is_the_median_over_neighbouring_lenses(case):
     assert np.array_equal(grid, background.level)  # float32 values, so the float32 median is exact
     assert np.array_equal(cv2.medianBlur(grid.astype(np.float32), 5).astype(np.float64),
                           median_filter(grid, size=5, mode="nearest"))
+
+
+def test_local_noise_is_the_lower_percentiles_of_each_lens_then_the_median_of_its_neighbours(case):
+    image, _, refocus, fit = case
+    background = estimate_background(image, fit, noise_dn=background_and_noise(image, refocus)[1])
+    per_sample = background.per_sample(refocus)
+    got_offset, got_spread = local_noise(image, refocus, per_sample).per_lens(refocus)
+    # Per lens: the 10th and 30th percentiles of its central samples about the background, read
+    # as a normal distribution's; then the 5 x 5 median over the lattice indices.
+    residual = (image.reshape(-1)[refocus.pixel_index].astype(np.float64) - refocus.black_level
+                - per_sample * refocus.weight).astype(np.float32)
+    central = refocus.u_m * refocus.u_m + refocus.v_m * refocus.v_m <= (CENTRAL_FRACTION * refocus.aperture_radius_m) ** 2
+    lens_values = [residual[a:b][central[a:b]].astype(np.float64)
+                   for a, b in zip(refocus.lens_start[:-1], refocus.lens_start[1:])]
+    q10, q30 = (np.array([np.quantile(v, q) if v.size >= 2 else np.nan for v in lens_values]) for q in (0.1, 0.3))
+    z10, z30 = -1.2815515655446004, -0.5244005127080407
+    spread = (q30 - q10) / (z30 - z10)
+    offset = q30 - z30 * spread
+    i0, j0 = refocus.lens_ij.min(axis=0)
+    shape = tuple(refocus.lens_ij.max(axis=0)[::-1] - (j0, i0) + 1)
+    for values, got in ((offset, got_offset), (spread, got_spread)):
+        # Cells without a lens, and lenses with fewer than two central samples, take the typical value.
+        values = np.where(np.isfinite(values), values, np.nanmedian(values))
+        grid = np.full(shape, np.float32(np.median(values)), dtype=np.float32)
+        grid[refocus.lens_ij[:, 1] - j0, refocus.lens_ij[:, 0] - i0] = values
+        want = median_filter(grid, size=5, mode="nearest")[refocus.lens_ij[:, 1] - j0, refocus.lens_ij[:, 0] - i0]
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-3)
+
+
+@pytest.fixture(scope="module")
+def faint_beside_a_reflection():
+    """A realistic camera (wider blur, micro-image response, vignetting, a drifted lattice), a
+    reflected laser band across part of the crop, and a faint particle blurred over 8 lens pitches
+    over the glow beside it: its expected image, the noisy exposure, tables and background."""
+    meta = simulated_camera_metadata(size=512)
+    model = CameraModel.from_metadata(meta)
+    camera = CameraEffects.build(Realism.only("blur", "micro-images", "vignetting", "drift"), serial="A202160042")
+    white = WhiteImage.from_image("MOD_0001", render_white_image(model, seed=7, camera=camera), meta,
+                                  simulated_private_metadata())
+    calibration = calibrate(white)
+    cache = Cache()
+    refocus, fit = get_table(calibration, cache), get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
+    faint = Particles(np.array([-0.3]), np.array([-0.3]), np.array([57.0]), np.array([500.0]))
+    band = ExtendedSource(kind="band", z_mm=66.0, x_mm=0.0, y_mm=0.9, sigma_mm=0.2, level_dn=2000.0,
+                          angle_rad=0.02, amplitude=0.25, period_mm=2.5)
+    clean = render_exposure(model, faint, seed=3, noise=False, camera=camera).astype(np.float64) - model.black_level
+    image = render_exposure(model, faint, seed=3, background_dn=40.0, chamber=ChamberLight(sources=(band,)),
+                            camera=camera)
+    background = estimate_background(image, fit, noise_dn=background_and_noise(image, refocus)[1])
+    return clean, image, refocus, background
+
+
+def test_local_noise_is_the_cameras_over_glow_and_more_over_a_reflection(faint_beside_a_reflection):
+    _, image, refocus, background = faint_beside_a_reflection
+    _, spread = local_noise(image, refocus, background.per_sample(refocus)).per_lens(refocus)
+    level = background.per_lens(refocus)
+    typical = np.median(level)
+    glow, band = level < 1.2 * typical, level > 5 * typical
+    assert glow.sum() > 500 and band.sum() > 200
+    shot_and_read = np.sqrt(READ_NOISE_DN ** 2 + level[glow] / ELECTRONS_PER_DN)
+    assert np.median(spread[glow] / shot_and_read) == pytest.approx(1.0, abs=0.15)
+    assert np.median(spread[band]) > 5 * np.median(spread[glow])
+
+
+def test_a_faint_blurred_particles_samples_pass_beside_a_reflection(faint_beside_a_reflection):
+    """Each lens's own noise sets its cut: the particle's samples expected 5 shot-noise sigmas above
+    the glow all pass. One noise model for the frame follows the band's light and cuts half of them."""
+    clean, image, refocus, background = faint_beside_a_reflection
+    lit = np.flatnonzero(clean.reshape(-1)[refocus.pixel_index] > 25.0)
+    assert lit.size > 50
+    local = select_samples(image, refocus, background=background)
+    frame_wide = select_samples(image, refocus, background=background, local=False)
+    assert np.isin(lit, local.ids).mean() >= 0.95
+    assert np.isin(lit, frame_wide.ids).mean() < 0.7
+    assert local.threshold < frame_wide.threshold
 
 
 def test_median_of_5_is_the_median():

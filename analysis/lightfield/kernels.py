@@ -71,10 +71,11 @@ def value_histogram(values, weights, betas, divide, lo, inv_width, hist):  # pra
 
 @njit(parallel=True, cache=True)
 def select_samples(image_flat, pixel_index, weight, black, beta, centre, n_sigmas, noise_a, noise_b,
-                   n_chunks):  # pragma: no cover
+                   lens, lens_threshold, n_chunks):  # pragma: no cover
     """Samples with ``val = raw - black - beta * weight`` above ``centre + n_sigmas * sqrt(noise_a +
-    noise_b * beta * weight)`` (``beta`` per sample: the noise grows with the background), as (ids
-    int32, values float32), in table order.
+    noise_b * beta * weight)`` (``beta`` per sample: the noise grows with the background), or where
+    ``lens_threshold`` is not empty, above their lens's (``lens``: each sample's), as (ids int32,
+    values float32), in table order.
 
     One pass over the image: chunk ``c`` writes its hits from the start of its own stretch of
     a full-length buffer (only the touched pages of which are ever backed by memory), then the
@@ -90,7 +91,11 @@ def select_samples(image_flat, pixel_index, weight, black, beta, centre, n_sigma
         for k in range(c * step, min(n, (c + 1) * step)):
             signal = beta[k] * weight[k]
             val = image_flat[pixel_index[k]] - black - signal
-            if val > centre + n_sigmas * math.sqrt(noise_a + noise_b * max(signal, 0.0)):
+            if lens_threshold.size:
+                above = val > lens_threshold[lens[k]]
+            else:
+                above = val > centre + n_sigmas * math.sqrt(noise_a + noise_b * max(signal, 0.0))
+            if above:
                 all_ids[pos] = k
                 all_values[pos] = val
                 pos += 1

@@ -200,7 +200,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     lens_noise = samples.variance_ratio(background.per_lens(fit_table))
     if not params.user_range:
         with clock.stage("survey"):
-            found = _survey(exposure.image, table, samples, sub, alphas, params, threshold, cache, fitter, lens_noise)
+            found = _survey(exposure.image, table, background, alphas, params, threshold, cache, fitter, lens_noise)
         if found is None:
             warnings.append(f"no particles found above the noise anywhere in alpha {alphas[0]:.4f} ... "
                             f"{alphas[-1]:.4f}; check the exposure and the threshold")
@@ -284,7 +284,7 @@ def _lattice_drift(exposure: Exposure, calibration: Calibration, cache: Cache, n
     return estimate_drift(exposure.image, lattice, white, noise_dn=noise_dn)
 
 
-def _survey(image: np.ndarray, table: LightFieldTable, samples, sub: np.ndarray, survey: np.ndarray,
+def _survey(image: np.ndarray, table: LightFieldTable, background: BackgroundMap, survey: np.ndarray,
             params: PipelineParams, threshold: float, cache: Cache, fitter: RayFitter | None,
             lens_noise: np.ndarray) -> np.ndarray | None:
     """The fine stack's alphas from a coarse stack over the whole range (``survey``); None when it
@@ -293,7 +293,16 @@ def _survey(image: np.ndarray, table: LightFieldTable, samples, sub: np.ndarray,
     Far from focus the shift-and-add lines a particle's samples up again on the lattice (ghosts at
     ``c +- pitch / (aperture metres per pixel)``, about 0.016 in alpha here), so only peaks whose
     light the forward model explains as a point at their depth, and whose lenses show a point's
-    pattern (:func:`analysis.depth.quality.patterned`), set the range."""
+    pattern (:func:`analysis.depth.quality.patterned`), set the range.
+
+    Its samples are cut by one noise model for the frame (``select_samples(local=False)``), harder
+    over glow than each lens's own noise would: the range needs the clear particles only, and the
+    faint outskirts of compact glints' blurred disks, which the lower cut lets in, then outshine
+    particles on their lines of sight in the coarse stack (nine such particles lost, the range set
+    at the glints)."""
+    samples = select_samples(image, table, background=background, noise_sigmas=params.noise_sigmas, local=False)
+    sub = subaperture_image(image, table, fraction=params.aperture_fraction, blur_sigma_px=params.blur_sigma_px,
+                            grid=table.grid, samples=samples, cache=cache)
     stack = refocus_stack(image, table, survey, grid=table.grid, samples=samples, cache=cache)
     coarse = dataclasses.replace(params, maxima_half_slices=-1)  # the range, not every particle
     peaks, _ = locate(products(stack, sub, out=stack), survey, coarse, threshold=threshold)
