@@ -257,8 +257,9 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
             with clock.stage("refit"):
                 peaks, fit = refit_blurred(fitter, peaks, fit)
         with clock.stage("quality"):
-            # The refits since the refine stage's merge can bring two fits onto one particle.
-            peaks, fit = fitter.unique(peaks, fit, max_sigmas=SAME_DEPTH_SIGMAS)
+            # The refits since the refine stage's merge can bring two fits onto one particle, or
+            # move one out of the range (held-out seed 26: three of a compact glint's tiling fits).
+            peaks, fit = inside(fitter, *fitter.unique(peaks, fit, max_sigmas=SAME_DEPTH_SIGMAS), limits)
             peaks, fit, share = drop_extended(fitter, peaks, fit)
             peaks, fit, share = drop_misfits(fitter, peaks, fit, share, limit=params.max_fit_residual)
             quality = {"leftover": share}
