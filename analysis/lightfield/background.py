@@ -139,16 +139,32 @@ def local_noise(image: np.ndarray, table: LightFieldTable, background: np.ndarra
     r_max = CENTRAL_FRACTION * table.aperture_radius_m
     offset, spread = _lens_scatter(flat, table.pixel_index, table.weight, table.u_m, table.v_m, table.lens_start,
                                    float(table.black_level), float(r_max * r_max), background)
+    i0, j0, jj, ii, shape = _lattice_cells(table)
+    # In float32, as the lens medians of the background are, for the quick exact median filter.
+    return NoiseMap(_neighbour_median(offset.astype(np.float32), jj, ii, shape, neighbourhood)[0],
+                    _neighbour_median(spread.astype(np.float32), jj, ii, shape, neighbourhood)[0], i0, j0)
+
+
+def _lattice_cells(table: LightFieldTable) -> tuple[int, int, np.ndarray, np.ndarray, tuple[int, int]]:
+    """``i0, j0`` (the lattice index of a map's first cell), each lens's row and column in the map
+    (``jj, ii``), and the map's shape ``(n_j, n_i)``: a map over the lattice indices of ``table``'s lenses."""
     i0, j0 = (int(v) for v in table.lens_ij.min(axis=0))
     n_i, n_j = (int(v) + 1 for v in table.lens_ij.max(axis=0) - (i0, j0))
-    jj, ii = table.lens_ij[:, 1] - j0, table.lens_ij[:, 0] - i0
+    return i0, j0, table.lens_ij[:, 1] - j0, table.lens_ij[:, 0] - i0, (n_j, n_i)
 
-    def smoothed(values: np.ndarray) -> np.ndarray:
-        grid = np.full((n_j, n_i), np.nan, dtype=np.float32)
-        grid[jj, ii] = values
-        typical = np.float32(np.nanmedian(values)) if np.isfinite(values).any() else np.float32(0.0)
-        return _median_filter(np.where(np.isfinite(grid), grid, typical), neighbourhood)
-    return NoiseMap(smoothed(offset), smoothed(spread), i0, j0)
+
+def _neighbour_median(values: np.ndarray, jj: np.ndarray, ii: np.ndarray, shape: tuple[int, int],
+                      size: int) -> tuple[np.ndarray, float]:
+    """One value per lens (float32 values: NaN where a lens has none), as a map, each replaced by the
+    median over its ``size`` x ``size`` neighbours; and the typical value (their median)."""
+    grid = np.full(shape, np.nan)
+    grid[jj, ii] = values
+    # Rounded to float32 like the values, so that the spatial median may run in float32 and still
+    # return exactly the values it was given.
+    typical = float(np.float32(np.nanmedian(values))) if np.isfinite(values).any() else 0.0
+    # Cells of the index rectangle with no lens (the sensor's parallelogram corners, lenses with no
+    # central sample) take the typical value before the spatial median.
+    return _median_filter(np.where(np.isfinite(grid), grid, typical), size), typical
 
 
 def _on_lenses(grid: np.ndarray, i0: int, j0: int, table: LightFieldTable) -> np.ndarray:
@@ -185,17 +201,9 @@ def estimate_background(image: np.ndarray, table: LightFieldTable, *, noise_dn: 
     r_max = np.float32(CENTRAL_FRACTION * table.aperture_radius_m)
     medians = _lens_medians(flat, table.pixel_index, table.weight, table.u_m, table.v_m, start,
                             float(table.black_level), float(r_max * r_max))
-    i0, j0 = (int(v) for v in table.lens_ij.min(axis=0))
-    n_i, n_j = (int(v) + 1 for v in table.lens_ij.max(axis=0) - (i0, j0))
-    grid = np.full((n_j, n_i), np.nan)
-    jj, ii = table.lens_ij[:, 1] - j0, table.lens_ij[:, 0] - i0
-    grid[jj, ii] = medians
-    # Rounded to float32 like the lens medians (medians of float32 values), so that the spatial
-    # median below may run in float32 and still return exactly the values it was given.
-    typical = float(np.float32(np.nanmedian(medians))) if np.isfinite(medians).any() else 0.0
-    # Cells of the index rectangle with no lens (the sensor's parallelogram corners, lenses with no
-    # central sample) take the typical level before the spatial median.
-    level = _median_filter(np.where(np.isfinite(grid), grid, typical), neighbourhood)
+    i0, j0, jj, ii, shape = _lattice_cells(table)
+    n_j, n_i = shape
+    level, typical = _neighbour_median(medians, jj, ii, shape, neighbourhood)
     # Where extended light stands out, sample by sample, over the lenses around those.
     structured = binary_dilation(level > typical + STRUCTURED_SIGMAS * max(noise_dn, 0.5),
                                  iterations=STRUCTURED_MARGIN_LENSES)
@@ -265,13 +273,26 @@ def _lens_medians(flat, pixel_index, weight, u_m, v_m, start, black, r2_max):  #
         most = max(most, start[k + 1] - start[k])
     for k in prange(n):
         buf = np.empty(most, dtype=np.float32)
-        m = 0
-        for j in range(start[k], start[k + 1]):
-            if u_m[j] * u_m[j] + v_m[j] * v_m[j] <= r2_max:
-                buf[m] = (np.float64(flat[pixel_index[j]]) - black) / max(np.float64(weight[j]), 1e-6)
-                m += 1
+        m = _central_values(flat, pixel_index, weight, u_m, v_m, start[k], start[k + 1], black, r2_max,
+                            np.empty(0, np.float32), buf)
         out[k] = median_in_place(buf, m) if m > 0 else np.nan
     return out
+
+
+@njit(cache=True, inline="always")
+def _central_values(flat, pixel_index, weight, u_m, v_m, j0, j1, black, r2_max, background, buf):  # pragma: no cover
+    # Samples j0:j1 (one lens's) within r2_max of the aperture centre into buf, how many returned:
+    # devignetted, (raw - black) / weight, with an empty background; else about it, in raw DN,
+    # raw - black - background * weight.
+    m = 0
+    for j in range(j0, j1):
+        if u_m[j] * u_m[j] + v_m[j] * v_m[j] <= r2_max:
+            if background.size:
+                buf[m] = np.float64(flat[pixel_index[j]]) - black - background[j] * weight[j]
+            else:
+                buf[m] = (np.float64(flat[pixel_index[j]]) - black) / max(np.float64(weight[j]), 1e-6)
+            m += 1
+    return m
 
 
 @njit(cache=True, parallel=True)
@@ -290,11 +311,8 @@ def _lens_scatter(flat, pixel_index, weight, u_m, v_m, start, black, r2_max, bac
         most = max(most, start[k + 1] - start[k])
     for k in prange(n):
         buf = np.empty(most, dtype=np.float32)
-        m = 0
-        for j in range(start[k], start[k + 1]):
-            if u_m[j] * u_m[j] + v_m[j] * v_m[j] <= r2_max:
-                buf[m] = np.float64(flat[pixel_index[j]]) - black - background[j] * weight[j]
-                m += 1
+        m = _central_values(flat, pixel_index, weight, u_m, v_m, start[k], start[k + 1], black, r2_max, background,
+                            buf)
         if m < 2:
             offset[k] = np.nan
             spread[k] = np.nan
