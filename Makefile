@@ -38,8 +38,10 @@ browser:
 	        || echo "could not install chromium: the dashboard test will be skipped"; \
 	    else echo "chromium missing (needs root and apt-get): the dashboard test will be skipped"; fi; }
 
+# Two workers, each taking whole test files (their module fixtures are built once): the service
+# tests mostly wait on subprocesses and sockets, so two files at once take 0.6-0.7 of one after another.
 test: $(STAMP) $(KERNELS) browser
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 bench: $(STAMP) $(KERNELS)
 	$(BIN)/python bench/run_all.py
