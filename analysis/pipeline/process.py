@@ -376,7 +376,10 @@ def _look_again(fitter: RayFitter, table: LightFieldTable, background: Backgroun
     # The new peaks' curves are tracks of the residual's stack: append them to the first pass's,
     # so each particle's track index still points at its own curve.
     both = dataclasses.replace(Peaks.concat(peaks, new), track=np.r_[peaks.track, new.track + len(tracks)])
-    both, both_fit = fitter.unique(both, RayFit.concat(fit, new_fit), settled=len(peaks))
+    # A new fit merges into a found one only if their depths agree within their uncertainties, as
+    # at the end (SAME_DEPTH_SIGMAS): the merge distance alone (4 slices) took a blurred particle
+    # found on a brighter one's line of sight, 4.7 sigma behind it, for that one (dev seed 1).
+    both, both_fit = fitter.unique(both, RayFit.concat(fit, new_fit), settled=len(peaks), max_sigmas=SAME_DEPTH_SIGMAS)
     if len(both) == len(peaks):
         return None
     tracks = Tracks(x=np.vstack([tracks.x, new_tracks.x]), y=np.vstack([tracks.y, new_tracks.y]),
