@@ -69,6 +69,9 @@ def test_a_reflected_laser_band_yields_no_particle_and_hides_none():
     assert noise.sum() >= 10
     where = particle_truth(model, Particles(*(result.rejected[c][noise] for c in "XYZ"), np.zeros(noise.sum())))
     assert np.all(ChamberLight(sources=(band,)).on_reflection(model, where.x_px, where.y_px))
+    # Each is listed once, though the second pass finds many of them again.
+    where = np.column_stack([result.rejected[c][noise] for c in ("x", "y", "alpha")])
+    assert len(np.unique(where, axis=0)) == len(where)
 
 
 def test_particles_beyond_the_papers_alpha_range_are_found_by_default():

@@ -55,18 +55,21 @@ class Rejections:
                            "reason": np.full(n, reason)})
 
     def __len__(self) -> int:
-        return sum(len(p["x"]) for p in self.parts)
+        return len(self.table()["x"])
 
     def counts(self) -> dict[str, int]:
         """How many were dropped for each reason."""
-        out: dict[str, int] = {}
-        for p in self.parts:
-            out[str(p["reason"][0])] = out.get(str(p["reason"][0]), 0) + len(p["x"])
-        return out
+        reasons, n = np.unique(self.table()["reason"], return_counts=True)
+        return {str(r): int(k) for r, k in zip(reasons, n)}
 
     def table(self) -> dict[str, np.ndarray]:
-        """The dropped candidates as columns (``reason`` as text)."""
+        """The dropped candidates as columns (``reason`` as text), each once: a later detection pass
+        finds many of an earlier one's candidates again where the particles' light does not
+        change them, and drops them for the same reason (the first record is kept)."""
         names = ("x", "y", "alpha", "intensity", "residual", "reason")
         if not self.parts:
             return {name: (np.empty(0, dtype=str) if name == "reason" else np.empty(0)) for name in names}
-        return {name: np.concatenate([p[name] for p in self.parts]) for name in names}
+        cols = {name: np.concatenate([p[name] for p in self.parts]) for name in names}
+        key = np.rec.fromarrays([cols["x"], cols["y"], cols["alpha"], cols["reason"]])
+        first = np.sort(np.unique(key, return_index=True)[1])
+        return {name: v[first] for name, v in cols.items()}
