@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from analysis.detection.curves import Peaks
 
@@ -146,3 +147,21 @@ def drop_misfits(fitter: RayFitter, peaks: Peaks, fit: RayFit, share: np.ndarray
         peaks, fit = peaks.take(~bad), fit.take(~bad)
         share = leftover_fraction(fitter, fit)
     return peaks, fit, share
+
+
+def too_close(xyz: np.ndarray, priority: np.ndarray, fraction: float) -> np.ndarray:
+    """Points (a mask) closer than ``fraction`` of the median nearest-neighbour distance to a point
+    of higher ``priority`` that is not itself too close (the highest first, greedily): one
+    particle's light fitted twice, where particles repel one another (``PipelineParams.min_separation``).
+    Points with a NaN coordinate, or fewer than three others, are never too close."""
+    xyz, priority = np.asarray(xyz, float), np.asarray(priority, float)
+    out = np.zeros(len(xyz), dtype=bool)
+    rows = np.flatnonzero(np.isfinite(xyz).all(axis=1))
+    if fraction <= 0 or rows.size < 4:
+        return out
+    tree = cKDTree(xyz[rows])
+    limit = fraction * float(np.median(tree.query(xyz[rows], 2)[0][:, 1]))
+    for i in np.argsort(-priority[rows], kind="stable"):
+        if not out[rows[i]]:
+            out[rows[[j for j in tree.query_ball_point(xyz[rows[i]], limit) if j != i]]] = True
+    return out

@@ -27,6 +27,8 @@ REASONS: dict[str, str] = {
     "seen_twice": ("its light is explained by a neighbouring particle (a duplicate, a ghost at another depth, "
                    "or one particle fitted twice on its line of sight)"),
     "weak_residual": "left-over light of the particles found, too weak for a particle of its own",
+    "too_close": ("it lies closer to a brighter particle than particles in a plasma come (PipelineParams."
+                  "min_separation): that particle's light fitted twice"),
     "extended": "its light does not converge to a point: an extended source (reflection, glow, glare)",
 }
 

@@ -68,6 +68,13 @@ class PipelineParams:
         neighbours lie on one surface, take the depth that surface predicts as a prior
         (:func:`apply_depth_prior`, :mod:`analysis.depth.prior`); in a 3D crowd no surface fits and
         it does nothing. Turn it off to measure out-of-surface motion from the pixels alone.
+    min_separation
+        A prior of the physics: particles in a plasma repel one another, so none comes much closer
+        to another than about half their typical spacing. Of two particles closer than this
+        fraction of the median nearest-neighbour distance (3D, physical coordinates) the fainter
+        is one particle's light fitted twice and is dropped (``too_close``); 0 turns it off. On 40
+        simulated frames (seeds 1-2, 25-28) real pairs stood at least 0.47 of it apart (the
+        shadowing partners, placed 0.5 apart on purpose), 5 of the 24 false particles 0.09-0.28.
     merge_slices
         Refined particles closer than ``link_radius_px`` in the image and this many slices in alpha
         are one particle (the brighter kept): candidates of one particle converge there.
@@ -113,6 +120,7 @@ class PipelineParams:
     fit_lateral: int = 5
     deblend: bool = True
     depth_prior: bool = True
+    min_separation: float = 0.3
     pixel_size_mm: float | None = None
     depth_per_alpha_mm: float | None = None
     reference_alpha: float = 1.0
@@ -144,6 +152,9 @@ class PipelineParams:
         if self.merge_slices < 0 or self.maxima_half_slices < -1:
             raise ParameterError(f"need merge_slices >= 0 and maxima_half_slices >= -1 (-1: off), "
                                  f"got {self.merge_slices}, {self.maxima_half_slices}")
+        if not (0 <= self.min_separation < 1):
+            raise ParameterError(f"min_separation must be in [0, 1) (of the median nearest-neighbour distance), "
+                                 f"got {self.min_separation}")
         if not (1 <= self.passes <= 5):
             raise ParameterError(f"passes must be 1 ... 5, got {self.passes}")
         if not (0 < self.refine_alpha_range < 0.1):

@@ -56,7 +56,7 @@ from analysis.camera.image_grid import ImageGrid
 from analysis.camera.model import CameraModel
 from analysis.depth.deblend import deblend, refit_blurred, split_shared
 from analysis.depth.prior import apply_depth_prior
-from analysis.depth.quality import FIT_RESIDUAL_SLACK, converges, drop_extended, drop_misfits, patterned
+from analysis.depth.quality import FIT_RESIDUAL_SLACK, converges, drop_extended, drop_misfits, patterned, too_close
 from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
 from analysis.depth.refine import (COARSE_LATERAL_PITCHES, COARSE_TEMPERATURE, PROBE_RESIDUAL, SAME_DEPTH_SIGMAS,
                                    RayFitter, accept, inside, outshines_misfit, refine_peaks, residual_image)
@@ -260,6 +260,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
             # The refits since the refine stage's merge can bring two fits onto one particle, or
             # move one out of the range (held-out seed 26: three of a compact glint's tiling fits).
             peaks, fit = inside(fitter, *fitter.unique(peaks, fit, max_sigmas=SAME_DEPTH_SIGMAS), limits)
+            peaks, fit = _separated(fitter, peaks, fit, grid, coordinates, params.min_separation)
             peaks, fit, share = drop_extended(fitter, peaks, fit)
             peaks, fit, share = drop_misfits(fitter, peaks, fit, share, limit=params.max_fit_residual)
             quality = {"leftover": share}
@@ -400,6 +401,15 @@ def _above_noise(fitter: RayFitter, peaks: Peaks, lens_noise: np.ndarray, thresh
     if record:
         fitter.reject(peaks.take(low), None, "noise")
     return peaks.take(~low)
+
+
+def _separated(fitter: RayFitter, peaks: Peaks, fit: RayFit, grid: ImageGrid, coordinates: Calibration3D,
+               fraction: float) -> tuple[Peaks, RayFit]:
+    """``peaks`` without those closer to a brighter one than particles come (recorded as ``too_close``)."""
+    xyz = np.column_stack(_physical(peaks.x, peaks.y, peaks.alpha, grid, coordinates))
+    close = too_close(xyz, fit.intensity, fraction)
+    fitter.reject(peaks.take(close), fit.take(close), "too_close")
+    return peaks.take(~close), fit.take(~close)
 
 
 def _particle_table(peaks: Peaks, tracks: Tracks | None, alphas: np.ndarray, table: LightFieldTable,
