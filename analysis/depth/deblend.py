@@ -13,13 +13,13 @@ import logging
 import numpy as np
 from scipy.spatial import cKDTree
 
-from analysis.detection.curves import Peaks
+from analysis.detection.curves import Peaks, unique_indices
 from analysis.lightfield.table import LightFieldTable
 
 from .quality import converges
 from .rayfit import FitGrid, RayFit
 from .refine import (FINE_TEMPERATURE, PROBE_FRACTION, PROBE_GRID, PROBE_HALF_RANGE, PROBE_RESIDUAL,
-    WIDE_PROBE_GRID, RayFitter, accept, moved, outshines_misfit, replace_fits)
+    SAME_DEPTH_SIGMAS, WIDE_PROBE_GRID, RayFitter, accept, moved, outshines_misfit, replace_fits)
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +62,9 @@ def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit
     that is left without enough light of its own, or that no longer fits, was a neighbour's light
     seen twice (a duplicate, or a ghost at another depth) and is dropped. Such fits are screened
     out first by a cheaper refit (:func:`seen_twice`), so the others are refitted once without
-    their light rather than twice.
+    their light rather than twice. A dropped fit is refitted once more with only the kept fits'
+    light taken off, and comes back where it then passes (a held-out shadowing pair through ideal
+    optics lost its in-focus particle to a ghost between the two, dropped with it).
     """
     # The light of the fits kept so far; a dropped fit's light is taken off it (fewer than re-rendering all).
     explained = fitter.render(fit)
@@ -78,6 +80,10 @@ def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit
         # The dropped fits' light was taken off their neighbours' pixels too: refit those without it.
         near = ok & _overlapping(fitter.table, fit, np.flatnonzero(~ok), pad_pitches=2.0)
         explained -= fitter.render(fit.take(np.flatnonzero(~ok)))
+        kept, new = _second_chance(fitter, peaks, fit, new, ok, explained)
+        if (kept & ~ok).any():
+            explained += fitter.render(new.take(np.flatnonzero(kept & ~ok)))
+        ok = kept
         fitter.reject(moved(fitter.grid, peaks, new).take(~ok), new.take(~ok), "seen_twice")
         keep = np.flatnonzero(ok)
         peaks, fit, new, near = peaks.take(keep), fit.take(keep), new.take(keep), near[keep]
@@ -87,6 +93,31 @@ def deblend(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit
                                own=fit.take(near), recentre=DEBLEND_RECENTRE)
             new = replace_fits(fitter.grid, peaks, new, np.flatnonzero(near), again)[1]
     return accept(fitter, peaks, new)
+
+
+def _second_chance(fitter: RayFitter, peaks: Peaks, fit: RayFit, new: RayFit, ok: np.ndarray,
+                   explained: np.ndarray) -> tuple[np.ndarray, RayFit]:
+    """``ok`` and ``new`` with the dropped fits back that, refitted with only the kept fits' light
+    (``explained``) taken off, pass as particles and as partners and are no kept fit's duplicate.
+    A ghost between two particles takes light off both in the refit; a real one dropped beside it
+    gets its light back only once the ghost is gone too."""
+    rows = np.flatnonzero(~ok)
+    again = fitter.fit(fit.sx_m[rows], fit.sy_m[rows], fit.alpha[rows], subtract=explained,
+                       recentre=DEBLEND_RECENTRE)
+    good = fitter.acceptable(again)
+    if not good.any():
+        return ok, new
+    back = rows[good]
+    new = new.with_rows(back, again.take(np.flatnonzero(good)))
+    order = np.r_[np.flatnonzero(ok), back]
+    weak = weak_partners(fitter, new.take(order))
+    order = np.r_[np.flatnonzero(ok), back[~weak[ok.sum():]]]
+    kept = unique_indices(moved(fitter.grid, peaks.take(order), new.take(order)), radius_px=fitter.merge_radius_px,
+                          alpha_tolerance=fitter.merge_alpha, priority=new.intensity[order], settled=int(ok.sum()),
+                          alpha_sigma=new.alpha_spread[order], max_sigmas=SAME_DEPTH_SIGMAS)
+    ok = ok.copy()
+    ok[order[kept]] = True
+    return ok, new
 
 
 def refit_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit]:
