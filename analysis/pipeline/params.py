@@ -72,9 +72,9 @@ class PipelineParams:
         A prior of the physics: particles in a plasma repel one another, so none comes much closer
         to another than about half their typical spacing. Of two particles closer than this
         fraction of the median nearest-neighbour distance (3D, physical coordinates) the fainter
-        is one particle's light fitted twice and is dropped (``too_close``); 0 turns it off. On 40
-        simulated frames (seeds 1-2, 25-28) real pairs stood at least 0.47 of it apart (the
-        shadowing partners, placed 0.5 apart on purpose), 5 of the 24 false particles 0.09-0.28.
+        is one particle's light fitted twice and is dropped (``too_close``); 0 turns it off. On the
+        realism bench's frames of seeds 1-2 and 25-28 real pairs stood at least 0.47 of it apart
+        (the shadowing partners, placed 0.5 apart on purpose), 5 of the 24 false particles 0.09-0.28.
     merge_slices
         Refined particles closer than ``link_radius_px`` in the image and this many slices in alpha
         are one particle (the brighter kept): candidates of one particle converge there.
