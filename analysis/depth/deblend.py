@@ -13,7 +13,7 @@ import logging
 import numpy as np
 from scipy.spatial import cKDTree
 
-from analysis.detection.curves import Peaks, unique_indices
+from analysis.detection.curves import Peaks
 from analysis.lightfield.table import LightFieldTable
 
 from .quality import converges
@@ -112,9 +112,8 @@ def _second_chance(fitter: RayFitter, peaks: Peaks, fit: RayFit, new: RayFit, ok
     order = np.r_[np.flatnonzero(ok), back]
     weak = weak_partners(fitter, new.take(order))
     order = np.r_[np.flatnonzero(ok), back[~weak[ok.sum():]]]
-    kept = unique_indices(moved(fitter.grid, peaks.take(order), new.take(order)), radius_px=fitter.merge_radius_px,
-                          alpha_tolerance=fitter.merge_alpha, priority=new.intensity[order], settled=int(ok.sum()),
-                          alpha_sigma=new.alpha_spread[order], max_sigmas=SAME_DEPTH_SIGMAS)
+    kept = fitter.unique_rows(moved(fitter.grid, peaks.take(order), new.take(order)), new.take(order),
+                              settled=int(ok.sum()), max_sigmas=SAME_DEPTH_SIGMAS)
     ok = ok.copy()
     ok[order[kept]] = True
     return ok, new

@@ -235,14 +235,17 @@ class RayFitter:
         is False (hypotheses of the stage, such as probes, rather than candidates). With
         ``max_sigmas``, fits merge only where their depths also differ by less than that many
         times their combined ``alpha_spread``."""
-        kept = unique_indices(peaks, radius_px=self.merge_radius_px, alpha_tolerance=self.merge_alpha,
-                              priority=fit.intensity, settled=settled,
-                              alpha_sigma=None if np.isinf(max_sigmas) else fit.alpha_spread,
-                              max_sigmas=max_sigmas)
+        kept = self.unique_rows(peaks, fit, settled=settled, max_sigmas=max_sigmas)
         if record:
             gone = np.setdiff1d(np.arange(len(peaks)), kept)
             self.reject(peaks.take(gone), fit.take(gone), "duplicate")
         return peaks.take(kept), fit.take(kept)
+
+    def unique_rows(self, peaks: Peaks, fit: RayFit, *, settled: int = 0, max_sigmas: float = np.inf) -> np.ndarray:
+        """The rows :meth:`unique` keeps, in order (nothing recorded)."""
+        return unique_indices(peaks, radius_px=self.merge_radius_px, alpha_tolerance=self.merge_alpha,
+                              priority=fit.intensity, settled=settled,
+                              alpha_sigma=None if np.isinf(max_sigmas) else fit.alpha_spread, max_sigmas=max_sigmas)
 
     def overlapping_max(self, sx_m: np.ndarray, sy_m: np.ndarray, alpha: np.ndarray, fit: RayFit,
                         values: np.ndarray, *, pad_pitches: float = 2.0) -> np.ndarray:

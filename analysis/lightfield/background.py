@@ -268,15 +268,22 @@ def _lens_medians(flat, pixel_index, weight, u_m, v_m, start, black, r2_max):  #
     # lens writes its own entry.
     n = start.size - 1
     out = np.empty(n)
-    most = 0
-    for k in range(n):
-        most = max(most, start[k + 1] - start[k])
+    most = _most_samples(start)
     for k in prange(n):
         buf = np.empty(most, dtype=np.float32)
         m = _central_values(flat, pixel_index, weight, u_m, v_m, start[k], start[k + 1], black, r2_max,
                             np.empty(0, np.float32), buf)
         out[k] = median_in_place(buf, m) if m > 0 else np.nan
     return out
+
+
+@njit(cache=True)
+def _most_samples(start):  # pragma: no cover - numba
+    # The most samples of one lens (``start``: each lens's first sample, then the end): a lens's buffer.
+    most = 0
+    for k in range(start.size - 1):
+        most = max(most, start[k + 1] - start[k])
+    return most
 
 
 @njit(cache=True, inline="always")
@@ -306,9 +313,7 @@ def _lens_scatter(flat, pixel_index, weight, u_m, v_m, start, black, r2_max, bac
     n = start.size - 1
     offset = np.empty(n)
     spread = np.empty(n)
-    most = 0
-    for k in range(n):
-        most = max(most, start[k + 1] - start[k])
+    most = _most_samples(start)
     for k in prange(n):
         buf = np.empty(most, dtype=np.float32)
         m = _central_values(flat, pixel_index, weight, u_m, v_m, start[k], start[k + 1], black, r2_max, background,
