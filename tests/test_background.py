@@ -19,7 +19,6 @@ from analysis.camera.model import CameraModel
 from analysis.formats.whites import WhiteImage
 from analysis.lightfield.background import CENTRAL_FRACTION, BackgroundMap, estimate_background, local_noise
 from analysis.lightfield.samples import background_and_noise, select_samples
-from analysis.lightfield.table import shifted_table
 from analysis.order_statistics import median_of_5
 from analysis.pipeline.tables import FIT_TABLE_RIM_PX, drifted_fit_table, get_table
 from analysis.simulation.camera import (ELECTRONS_PER_DN, READ_NOISE_DN, simulated_camera_metadata,
@@ -169,23 +168,6 @@ def test_median_of_5_is_the_median():
     for _ in range(2000):
         v = rng.integers(0, 5, 5).astype(np.float32)  # ties included
         assert median_of_5(*v) == np.median(v)
-
-
-def test_drifted_table_reads_the_white_image_with_its_defects_repaired(case):
-    _, calibration, _, fit = case
-    assert len(calibration.defects) > 0
-    cx, cy = calibration.model.lattice.centre(fit.lens_ij[:, 0], fit.lens_ij[:, 1])
-    shift = np.column_stack(LatticeDrift((0.23, -0.11), 4e-5, 0.0, 0).displacement(cx, cy, calibration.model.lattice))
-    optics = calibration.model.optics
-    m_per_px = optics.pixel_pitch_m / optics.projection_factor
-    patched = shifted_table(fit, calibration.devignetting, shift, m_per_px=m_per_px, patch=calibration.repaired_defects)
-    copied = shifted_table(fit, repaired(calibration.devignetting, calibration.defects.index), shift,
-                           m_per_px=m_per_px)
-    for name in ("u_m", "v_m", "weight", "lens_xy_m"):
-        assert np.array_equal(getattr(patched, name), getattr(copied, name)), name
-    assert patched.weight.dtype == np.float32 and patched.u_m.dtype == np.float32
-    u_per_px = fit.aperture_radius_m / fit.micro_image_radius_px
-    assert np.allclose(patched.u_m - fit.u_m, (shift[:, 0] * u_per_px)[fit.lens], atol=1e-9)
 
 
 def test_the_cache_keeps_one_drifted_table_per_calibration(case):

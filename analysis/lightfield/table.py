@@ -15,7 +15,6 @@ light by summed weight, so ``cos^4`` is counted exactly once either way.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import uuid
 import zipfile
@@ -25,7 +24,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from numba import njit, prange
 
 from analysis.formats.atomic_write import atomic_path
 from analysis.formats.mapped_npz import map_members, save_aligned
@@ -351,88 +349,6 @@ def build_table_from_model(model: CameraModel, devignetting: np.ndarray | None =
 def _joined(parts: dict[str, list[np.ndarray]], name: str) -> np.ndarray:
     """The concatenated parts of one column, which are let go."""
     return np.concatenate(parts.pop(name))
-
-
-def shifted_table(table: LightFieldTable, devignetting: np.ndarray, shift_px: np.ndarray, *,
-                  m_per_px: float, patch: tuple[np.ndarray, np.ndarray] | None = None) -> LightFieldTable:
-    """The table of an exposure whose micro-images moved by ``shift_px`` (per lens, (L, 2), sensor
-    pixels) from where the white image had them: the lattice drifted (thermal, mechanical).
-
-    The same pixels, each behind the same lens, now sees the aperture point ``shift * u_per_px``
-    further on; lens centres move by ``shift * m_per_px`` on the lens plane (``pixel pitch /
-    projection factor``); the weights are the white image read where each pixel now sits relative to
-    its micro-image (bilinear, at ``pixel - shift``). For shifts well below a pixel: the pixels
-    that a larger shift would bring into or out of a micro-image are not added or dropped.
-
-    ``patch``: ``(index, values)``, pixels of ``devignetting`` (flat, sorted) read as these values
-    instead (the calibration's repaired defects, ``Calibration.repaired_defects``), so that no
-    repaired copy of the whole map is needed.
-    """
-    shift_px = np.asarray(shift_px, dtype=np.float64)
-    u_per_px = table.aperture_radius_m / table.micro_image_radius_px
-    du = (shift_px * u_per_px).astype(np.float32)
-    devignetting = np.asarray(devignetting)
-    # The table's weights are the white image over one normalising constant.
-    probe = table.pixel_index[:: max(1, table.n_samples // 10_000)]
-    probe_w = table.weight[:: max(1, table.n_samples // 10_000)]
-    norm = float(np.median(devignetting.reshape(-1)[probe] / np.maximum(probe_w, 1e-6)))
-    # One pass over the samples, no temporaries (as numpy, 0.15 s and 80 MB on an F01's fit table).
-    u_m, v_m, weight = (np.empty(table.n_samples, dtype=np.float32) for _ in range(3))
-    index, values = (np.empty(0, np.int64), np.empty(0, devignetting.dtype)) if patch is None else patch
-    index = np.asarray(index, dtype=np.int64)
-    bits = np.zeros((devignetting.size + 7) // 8 if index.size else 0, dtype=np.uint8)  # 1 bit per pixel
-    np.bitwise_or.at(bits, index >> 3, (1 << (index & 7)).astype(np.uint8))
-    _shift_samples(devignetting, bits, index, np.asarray(values, dtype=devignetting.dtype), table.pixel_index,
-                   table.lens, table.u_m, table.v_m, shift_px, du, table.width, 1.0 / norm, u_m, v_m, weight)
-    return dataclasses.replace(
-        table, u_m=u_m, v_m=v_m, weight=weight, lens_xy_m=table.lens_xy_m + shift_px * m_per_px, uid=uuid.uuid4().hex)
-
-
-@njit(cache=True, inline="always")
-def _white_at(devignetting, bits, index, values, y, x, width):  # pragma: no cover - numba
-    # devignetting[y, x], or its patched value where bits marks the pixel.
-    p = y * width + x
-    if (bits[p >> 3] >> (p & 7)) & 1:
-        return values[np.searchsorted(index, p)]
-    return devignetting[y, x]
-
-
-@njit(cache=True, inline="always")
-def _pair_marked(bits, p):  # pragma: no cover - numba
-    # Whether bits marks pixel p or p + 1.
-    b = p >> 3
-    word = np.int64(bits[b]) | (np.int64(bits[b + 1]) << 8 if b + 1 < bits.size else 0)
-    return (word >> (p & 7)) & 3 != 0
-
-
-@njit(cache=True, parallel=True)
-def _shift_samples(devignetting, bits, index, values, pixel_index, lens, u_m, v_m, shift_px, du, width, scale,
-                   out_u, out_v, out_w):  # pragma: no cover - numba
-    # Per sample: the aperture point moved by its lens's du (float32 sums, as numpy adds them), and
-    # the white image at (pixel centre - shift of its lens), bilinear, times scale. Each sample
-    # writes its own entries.
-    n = pixel_index.size
-    h = devignetting.shape[0]
-    for k in prange(n):
-        out_u[k] = u_m[k] + du[lens[k], 0]
-        out_v[k] = v_m[k] + du[lens[k], 1]
-        row = pixel_index[k] // width
-        col = pixel_index[k] - row * width
-        x = col - shift_px[lens[k], 0]
-        y = row - shift_px[lens[k], 1]
-        x0 = min(max(int(np.floor(x)), 0), width - 2)
-        y0 = min(max(int(np.floor(y)), 0), h - 2)
-        fx = min(max(x - x0, 0.0), 1.0)
-        fy = min(max(y - y0, 0.0), 1.0)
-        if bits.size and (_pair_marked(bits, y0 * width + x0) or _pair_marked(bits, (y0 + 1) * width + x0)):
-            v = ((1 - fx) * (1 - fy) * _white_at(devignetting, bits, index, values, y0, x0, width)
-                 + fx * (1 - fy) * _white_at(devignetting, bits, index, values, y0, x0 + 1, width)
-                 + (1 - fx) * fy * _white_at(devignetting, bits, index, values, y0 + 1, x0, width)
-                 + fx * fy * _white_at(devignetting, bits, index, values, y0 + 1, x0 + 1, width))
-        else:  # no patched pixel among the four (nearly every sample)
-            v = ((1 - fx) * (1 - fy) * devignetting[y0, x0] + fx * (1 - fy) * devignetting[y0, x0 + 1]
-                 + (1 - fx) * fy * devignetting[y0 + 1, x0] + fx * fy * devignetting[y0 + 1, x0 + 1])
-        out_w[k] = v * scale
 
 
 def default_grid(lens_xy_m: np.ndarray, basis_m: np.ndarray, *, oversample: float = 1.0) -> ImageGrid:
