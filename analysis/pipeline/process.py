@@ -53,7 +53,7 @@ from analysis.calibration.calibrate import Calibration
 from analysis.calibration.drift import LatticeDrift, block_phases, estimate_drift
 from analysis.camera.coordinates import Calibration3D, ThinLensCalibration, coordinate_warnings, to_physical
 from analysis.camera.image_grid import ImageGrid
-from analysis.camera.model import CameraModel
+from analysis.camera.model import IDEAL_POINT_SPREAD_PX, CameraModel
 from analysis.depth.deblend import deblend, refit_blurred, split_shared
 from analysis.depth.prior import apply_depth_prior
 from analysis.depth.quality import FIT_RESIDUAL_SLACK, converges, drop_extended, drop_misfits, patterned, too_close
@@ -70,6 +70,7 @@ from analysis.formats.mapped_npz import release_pages
 from analysis.lightfield.background import BackgroundMap, estimate_background
 from analysis.lightfield.refocus import default_alphas, products, refocus_stack, subaperture_image
 from analysis.lightfield.samples import background_and_noise, select_samples
+from analysis.lightfield.drifted_table import shifted_table
 from analysis.lightfield.table import LightFieldTable
 
 from .candidates import below_local_noise, locate, product_threshold
@@ -77,7 +78,8 @@ from .depth_range import SURVEY_GRID, edge_maxima, fit_limits, lattice_step, ran
 from .params import PipelineParams
 from .result import Result
 from .stages import Progress, StageClock, trim_heap
-from .tables import drifted_fit_table, get_table, normalisation_keys, release_table_pages, save_normalisations
+from .tables import (drifted_fit_table, get_table, micro_image_model, normalisation_keys, release_table_pages,
+                     save_normalisations)
 
 log = logging.getLogger(__name__)
 
@@ -560,3 +562,8 @@ def warm_up() -> None:
     explained = render_fits(table, fit, aperture_per_lens_plane=optics_ratio)
     unexplained_light(image, table, np.zeros(1), np.zeros(1), np.full(1, 1e-4), background=0.0,
                       explained=explained, floor=0.0)
+    optics = model.optics
+    shifted_table(table, np.ones(image.shape, np.float32), np.full((table.n_lenses, 2), 0.1),
+                  m_per_px=optics.pixel_pitch_m / optics.projection_factor,
+                  template=micro_image_model(IDEAL_POINT_SPREAD_PX, optics.micro_image_radius_px, 1.0),
+                  defects=np.zeros(image.shape, bool))

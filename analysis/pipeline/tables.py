@@ -168,8 +168,6 @@ def drifted_fit_table(calibration: Calibration, cache: Cache, drift: LatticeDrif
     table = shifted_table(base, calibration.devignetting, shift, m_per_px=optics.pixel_pitch_m / optics.projection_factor,
                           template=drift_template(calibration), defects=calibration.defect_mask, min_weight=MIN_WEIGHT)
     release_pages(calibration.devignetting)
-    for column in (base.pixel_index, base.lens, base.u_m, base.v_m, base.weight):  # mapped from the cache: 90 MB an F01's
-        release_pages(column)
     return cache.put(key, (q, table))[1]
 
 
@@ -181,5 +179,12 @@ def drift_template(calibration: Calibration) -> MicroImageTemplate:
         blur, radius, rim = calibration.blur_px, calibration.model.optics.micro_image_radius_px, 1.0
     else:
         blur, radius, rim = profile.blur_px, profile.radius_px, profile.rim_response
-    return MicroImageTemplate.cropped(micro_image_template(blur, radius, rim, half_width_px=radius + 5.0 * blur + 2.0,
-                                                           step_px=DRIFT_TEMPLATE_STEP_PX), DRIFT_TEMPLATE_STEP_PX)
+    return micro_image_model(blur, radius, rim)
+
+
+def micro_image_model(blur_px: float, radius_px: float, rim_response: float) -> MicroImageTemplate:
+    """A micro-image of this profile (:func:`analysis.calibration.profile.micro_image_template`) as
+    :func:`analysis.lightfield.drifted_table.shifted_table` takes it."""
+    values = micro_image_template(blur_px, radius_px, rim_response, half_width_px=radius_px + 5.0 * blur_px + 2.0,
+                                  step_px=DRIFT_TEMPLATE_STEP_PX)
+    return MicroImageTemplate.cropped(values, DRIFT_TEMPLATE_STEP_PX)
