@@ -167,33 +167,3 @@ def test_one_white_image_alone_still_shows_the_hot_pixels(defective, tmp_path):
     false = np.setdiff1d(cal.defects.index, truth.rows * 512 + truth.cols)
     rows, cols = np.divmod(false, 512)
     assert np.sum(np.minimum(np.minimum(rows, 511 - rows), np.minimum(cols, 511 - cols)) >= 2) <= 30
-
-
-def test_defective_pixels_of_the_white_image_are_repaired_for_reading_between_pixels(defective):
-    """A drifted lattice reads the white image between pixels: a hot pixel there must not leak into its
-    neighbours' weights, so the calibration keeps a copy with defects replaced by their neighbours."""
-    from dataclasses import replace
-
-    from analysis.calibration.calibrate import repaired
-    from analysis.camera.model import CameraModel
-    from analysis.simulation.camera import WHITE_RESPONSE, simulated_camera_metadata
-    from analysis.simulation.camera_effects import CameraEffects
-    from analysis.simulation.render import channel_response_map
-
-    folder, serial = defective
-    exposure = read_exposure(folder / "IMG_0001.lfp")
-    cal = load_calibration(folder / "calibration", exposure.metadata, serial=serial)
-    model = CameraModel.from_metadata(simulated_camera_metadata(size=512))
-    # The white image without noise and defects, as a devignetting map (2400 DN on green, white level 4095).
-    clean = white_coverage(model, camera=replace(CameraEffects.build(Realism(), serial=serial), defects=None))
-    clean = clean * channel_response_map(512, 512, WHITE_RESPONSE) * np.float32(2400.0 / (4095.0 - 168.0))
-    rows, cols = np.divmod(cal.defects.index, 512)
-    lit = clean[rows, cols] > 0.3 * clean.max()
-    fixed = repaired(cal.devignetting, cal.defects.index)
-    assert fixed is not cal.devignetting and np.array_equal(np.delete(fixed.ravel(), cal.defects.index),
-                                                            np.delete(cal.devignetting.ravel(), cal.defects.index))
-    before = np.abs(cal.devignetting[rows, cols] - clean[rows, cols])[lit]
-    after = np.abs(fixed[rows, cols] - clean[rows, cols])[lit]
-    assert np.median(after) < 0.4 * np.median(before) and np.median(after) < 0.1 * clean.max()
-    im = np.arange(36.0).reshape(6, 6)
-    assert repaired(im, np.array([14, 15]))[2, 3] == np.median([3.0, 27.0, 13.0, 17.0, 8.0, 10.0, 20.0, 22.0])

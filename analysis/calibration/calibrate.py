@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 
@@ -94,69 +93,10 @@ class Calibration:
         """ndarray (H, W) bool of the defective pixels, or None when there are none (or no search)."""
         return None if self.defects is None or len(self.defects) == 0 else self.defects.mask
 
-    @cached_property
-    def repaired_defects(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(index, values)``: the defective pixels (flat, sorted) and the values :func:`repaired`
-        gives them (the median of their nearest sound pixels of the same Bayer colour), for readers
-        of the white image between pixels (a drifted lattice's weights, where a hot pixel would leak
-        into its neighbours) that patch those few pixels instead of holding a repaired copy of the
-        whole map (43 MB for an F01)."""
-        if self.defects is None or len(self.defects) == 0:
-            return np.empty(0, np.int64), np.empty(0, self.devignetting.dtype)
-        index = np.sort(np.asarray(self.defects.index, dtype=np.int64))
-        return index, repaired_values(self.devignetting, index)
-
     @property
     def defects_key(self) -> str:
         """What the look-up tables built with this calibration's defect map are filed under ("" for none)."""
         return "" if self.defects is None or len(self.defects) == 0 else self.defects.key
-
-
-def repaired(image: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """A copy of ``image`` (H, W, Bayer) with the pixels at flat ``index`` replaced by the median of their
-    nearest pixels of the same colour (two apart along rows and columns, and for green sites, whose
-    colour repeats diagonally, the four diagonal neighbours) that are not in ``index`` themselves.
-
-    Examples
-    --------
-    >>> im = np.arange(36, dtype=np.float32).reshape(6, 6)
-    >>> im[2, 3] = 1000.0
-    >>> float(repaired(im, np.array([2 * 6 + 3]))[2, 3])
-    15.0
-    """
-    out = np.array(image, copy=True)
-    out.reshape(-1)[np.asarray(index, dtype=np.int64)] = repaired_values(image, index)
-    return out
-
-
-def repaired_values(image: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """The values :func:`repaired` gives the pixels at flat ``index`` (their own where no neighbour
-    of their colour is sound), in the image's dtype, without copying the image.
-
-    Examples
-    --------
-    >>> im = np.arange(36, dtype=np.float32).reshape(6, 6)
-    >>> im[2, 3] = 1000.0
-    >>> repaired_values(im, np.array([2 * 6 + 3])).tolist()
-    [15.0]
-    """
-    h, w = image.shape
-    bad = np.zeros(h * w, dtype=bool)
-    bad[index] = True
-    bad = bad.reshape(h, w)
-    rows, cols = np.divmod(np.asarray(index, dtype=np.int64), w)
-    out = np.asarray(image)[rows, cols].copy()
-    green = (rows + cols) % 2 == 1
-    offsets = [(-2, 0), (2, 0), (0, -2), (0, 2), (-1, -1), (-1, 1), (1, -1), (1, 1)]
-    values = np.full((rows.size, len(offsets)), np.nan)
-    for k, (dr, dc) in enumerate(offsets):
-        r, c = rows + dr, cols + dc
-        ok = (r >= 0) & (r < h) & (c >= 0) & (c < w) & (green if abs(dr) == 1 else True)
-        ok[ok] &= ~bad[r[ok], c[ok]]
-        values[ok, k] = image[r[ok], c[ok]]
-    have = np.isfinite(values).any(axis=1)
-    out[have] = np.nanmedian(values[have], axis=1)
-    return out
 
 
 def calibrate(white: WhiteImage, *, fallback_metadata: dict | None = None) -> Calibration:
