@@ -11,7 +11,6 @@ from scipy.ndimage import median_filter
 
 from analysis.cache import Cache
 from analysis.calibration.cache import load_calibration
-from analysis.calibration.calibrate import repaired
 from analysis.calibration.drift import LatticeDrift
 from analysis.formats.exposure import read_exposure
 from analysis.calibration.calibrate import calibrate
