@@ -1,7 +1,7 @@
 """The look-up table of an exposure whose micro-lens lattice drifted from where the white image had it.
 
-Each pixel keeps its lens; it now sees another aperture point, its micro-image is lit differently
-(its weight), and a pixel that was just inside the micro-image's rim may now lie beyond it.
+Each micro-image's pixels are now those about its moved centre: each sees another aperture point,
+is lit differently (its weight), and near the rim some pixels come in and others fall out.
 
 The weights are the white image as it would read with its micro-images moved. Reading the white
 image between pixels (bilinear) cannot give that: a micro-image's rim falls from full light to
@@ -26,7 +26,7 @@ from analysis.formats.mapped_npz import release_pages
 
 from .table import LightFieldTable
 
-#: The six neighbours of lens ``(i, j)`` as index steps (whose micro-images' tails reach its rim).
+#: Lens ``(i, j)`` itself and its six neighbours (whose micro-images' tails reach its rim), as index steps.
 _NEIGHBOURS = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1], [1, -1], [-1, 1]], dtype=np.float64)
 
 
