@@ -140,12 +140,12 @@ DRIFT_TEMPLATE_STEP_PX = 1.0 / 16.0
 
 def drifted_fit_table(calibration: Calibration, cache: Cache, drift: LatticeDrift | None) -> LightFieldTable:
     """The depth fit's table as an exposure with this lattice drift sees it (the calibration's own
-    when there is none, or less than a step): :func:`analysis.lightfield.table.shifted_table`.
+    when there is none, or less than a step): :func:`analysis.lightfield.drifted_table.shifted_table`.
 
     ``cache`` keeps one drifted table per calibration, the last one asked for: a run's lattice
-    drifts slowly, and each drifted table holds 55 MB (an F01's) that older drifts would keep
-    until the cache's budget pushed them out. The undrifted table's columns that the drifted one
-    replaces give their pages back when they are mapped from the disk cache."""
+    drifts slowly, and each drifted table holds 90 MB (an F01's) that older drifts would keep
+    until the cache's budget pushed them out. The undrifted table's columns, which the drifted one
+    replaces, give their pages back when they are mapped from the disk cache."""
     base = get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
     if drift is None:
         return base
