@@ -563,7 +563,9 @@ def warm_up() -> None:
     unexplained_light(image, table, np.zeros(1), np.zeros(1), np.full(1, 1e-4), background=0.0,
                       explained=explained, floor=0.0)
     optics = model.optics
-    shifted_table(table, np.ones(image.shape, np.float32), np.full((table.n_lenses, 2), 0.1),
+    white = np.ones(image.shape, np.float32)
+    white.flags.writeable = False  # as a calibration read from its cache maps it
+    shifted_table(table, white, np.full((table.n_lenses, 2), 0.1),
                   m_per_px=optics.pixel_pitch_m / optics.projection_factor,
                   template=micro_image_model(IDEAL_POINT_SPREAD_PX, optics.micro_image_radius_px, 1.0),
                   defects=np.zeros(image.shape, bool))
