@@ -69,7 +69,8 @@ def test_a_drifted_tables_weights_are_the_white_read_where_the_micro_images_move
     # The pixels are those a table built about the moved centres takes (but for a few at the
     # smallest weight); the pixels about the white image's centres are not.
     lattice = calibration.model.lattice
-    moved_lattice = lattice.with_changes(origin_x=lattice.origin_x + SHIFT_PX[0], origin_y=lattice.origin_y + SHIFT_PX[1],
+    moved_lattice = lattice.with_changes(origin_x=lattice.origin_x + SHIFT_PX[0],
+                                         origin_y=lattice.origin_y + SHIFT_PX[1],
                                          rotation_rad=lattice.rotation_rad + ROTATION_RAD)
     want = build_table_from_model(calibration.model.with_lattice(moved_lattice), moved.reshape(base.height, base.width),
                                   rim_px=FIT_TABLE_RIM_PX, min_weight=MIN_WEIGHT)

@@ -75,8 +75,8 @@ def shifted_table(table: LightFieldTable, devignetting: np.ndarray, shift_px: np
     probe_w = table.weight[:: max(1, table.n_samples // 10_000)]
     norm = float(np.median(white.reshape(-1)[probe] / np.maximum(probe_w, 1e-6)))
     steps_px = (table.basis_m @ _NEIGHBOURS.T).T / m_per_px  # each neighbour's centre from the lens's
+    # Each lens's micro-image centre: its first sample's pixel centre less that pixel's offset from it, -(u, v).
     old = np.column_stack(np.divmod(table.pixel_index[table.lens_start[:-1]], table.width)[::-1]).astype(np.float64)
-    # Each lens's micro-image centre: its first sample's pixel centre plus that sample's offset.
     old += 0.5 + np.column_stack([table.u_m[table.lens_start[:-1]], table.v_m[table.lens_start[:-1]]]) / u_per_px
     gain = _lens_gains(white.reshape(-1), table.pixel_index, table.lens_start, table.u_m, table.v_m, 1.0 / u_per_px,
                        template.values, 1.0 / template.step_px, 0.5 * table.micro_image_radius_px)
@@ -96,7 +96,8 @@ def shifted_table(table: LightFieldTable, devignetting: np.ndarray, shift_px: np
     keep = weight >= min_weight  # as the table about the white image's centres leaves out the faintest
     if not keep.all():  # in place, one column at a time (a copy of all five: 90 MB more at the peak)
         m = int(keep.sum())
-        pixel_index, lens, u_m, v_m, weight = (_kept(column, keep, m) for column in (pixel_index, lens, u_m, v_m, weight))
+        columns = (pixel_index, lens, u_m, v_m, weight)
+        pixel_index, lens, u_m, v_m, weight = (_kept(column, keep, m) for column in columns)
     u_m *= np.float32(u_per_px)
     v_m *= np.float32(u_per_px)
     weight *= np.float32(1.0 / norm)

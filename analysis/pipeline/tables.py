@@ -166,7 +166,8 @@ def drifted_fit_table(calibration: Calibration, cache: Cache, drift: LatticeDrif
     shift = np.column_stack(steps.displacement(cx, cy, lattice))
     optics = calibration.model.optics
     table = shifted_table(base, calibration.devignetting, shift, m_per_px=optics.pixel_pitch_m / optics.projection_factor,
-                          template=drift_template(calibration), defects=calibration.defect_mask, min_weight=MIN_WEIGHT)
+                          template=drift_template(calibration), defects=calibration.defect_mask,
+                          min_weight=MIN_WEIGHT)
     release_pages(calibration.devignetting)
     return cache.put(key, (q, table))[1]
 
