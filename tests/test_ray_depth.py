@@ -648,3 +648,24 @@ def test_a_blurred_particle_in_a_glints_light_is_kept_where_its_light_clearly_co
     assert not converges(fitter, fit, explained)[0]
     kept, _, _ = drop_extended(fitter, peaks, fit)
     assert len(kept) == 1
+
+
+def test_pattern_overlap_tells_one_particle_fitted_twice_from_a_pair_on_its_line_of_sight():
+    """Two fits of one particle blurred over 7 pitches, 0.0002 apart in alpha after the refits, light
+    their lenses alike: a fainter one there, with little evidence of its own, is the other's light
+    seen twice (a slightly wrong model leaves light that such a fit takes). True pairs on one line
+    of sight at other depths put their spots elsewhere in each lens."""
+    from analysis.depth.deblend import SAME_PATTERN
+    from analysis.depth.rayfit import pattern_overlap
+
+    def overlap(fitter, fit, rows, other):
+        return pattern_overlap(fitter.table, fit.take(rows), fit.take(other),
+                               fitter.blur_radius_m(fit.alpha[rows]) + 0.5 * fitter.pitch_m,
+                               aperture_per_lens_plane=fitter.aperture_per_lens_plane, blur_px=fitter.blur_px)
+
+    fitter, fit = _pair_fits([1.0116, 1.0128], [1.0122], [2400.0])
+    assert overlap(fitter, fit, np.array([0, 1, 0]), np.array([1, 0, 0])) == pytest.approx([0.9, 0.9, 1.0], abs=0.08)
+    for truth, brightness in (([1.0100, 1.0160], [2400.0, 2000.0]), ([0.99480, 1.00030], [2900.0, 950.0])):
+        fitter, fit = _pair_fits(truth, truth, brightness)
+        faint, bright = np.argsort(fit.intensity)
+        assert overlap(fitter, fit, np.array([faint]), np.array([bright]))[0] < 0.5 * SAME_PATTERN

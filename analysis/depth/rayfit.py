@@ -205,25 +205,54 @@ def _point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radiu
     light = ((raw - table.black_level) / idx.weight(g.ids) - _at(background_per_sample(table, background), g.ids)
              - explained[g.ids] + own)
     use = (raw < saturation).astype(np.float64)
+    out = np.full((n, 2), np.nan)
+    for k, pattern in enumerate((own, spread)):
+        if pattern is not None:
+            out[:, k] = _lens_correlation(light, pattern, g, use, n)
+    return out
+
+
+def pattern_overlap(table: LightFieldTable, fit: RayFit, other: RayFit, radius_m: np.ndarray, *,
+                    aperture_per_lens_plane: float, blur_px: float = DEFAULT_BLUR_PX,
+                    cache: Cache | None = None) -> np.ndarray:
+    """Per row, how alike the light of ``fit`` and of ``other`` (row for row) falls within the lenses
+    within ``radius_m`` of ``fit``: the squared correlation of their renders, each lens's mean
+    taken out, pooled over those lenses; 0 where they anticorrelate.
+
+    Near 1, the pixels can hardly tell the two apart: what a slightly wrong model leaves of one
+    particle is then fitted well by a point at nearly its place. A second particle on the line of
+    sight at another depth puts its spot elsewhere in each lens (near 0).
+    """
+    if len(fit) != len(other):
+        raise ValueError(f"{len(fit)} fits against {len(other)} others")
+    idx = table_index(table, cache)
+    radius = _points(fit.sx_m, radius_m)[1]
+
+    def part(rows: slice) -> np.ndarray:
+        one, two = fit.take(rows), other.take(rows)
+        g = idx.gather(one.sx_m, one.sy_m, radius[rows])
+        uv = idx.uv(g.ids)
+        return _lens_correlation(_render_gathered(one, idx, g, uv, aperture_per_lens_plane, blur_px),
+                                 _render_gathered(two, idx, g, uv, aperture_per_lens_plane, blur_px),
+                                 g, np.ones(g.ids.size), len(one))
+    return _in_chunks(len(fit), part)
+
+
+def _lens_correlation(a: np.ndarray, b: np.ndarray, g: Gathered, use: np.ndarray, n: int) -> np.ndarray:
+    """Per point of ``g``, the squared correlation of ``a`` and ``b`` over its gathered samples where
+    ``use`` (0 or 1), each lens's mean over those taken out; 0 where they anticorrelate."""
     lens = np.repeat(np.arange(g.sample_ptr.size - 1), np.diff(g.sample_ptr))
     count = np.maximum(np.bincount(lens, weights=use, minlength=g.sample_ptr.size - 1), 1.0)
     owner = np.repeat(np.arange(n), np.diff(g.lens_ptr))[lens]
 
-    def centred(values: np.ndarray) -> np.ndarray:  # each lens's mean over its unsaturated samples taken out
+    def centred(values: np.ndarray) -> np.ndarray:
         return use * (values - (np.bincount(lens, weights=use * values, minlength=count.size) / count)[lens])
 
-    def per_fit(values: np.ndarray) -> np.ndarray:
+    def per_point(values: np.ndarray) -> np.ndarray:
         return np.bincount(owner, weights=values, minlength=n)
-    dv = centred(light)
-    s_vv = per_fit(dv * dv)
-    out = np.full((n, 2), np.nan)
-    for k, pattern in enumerate((own, spread)):
-        if pattern is None:
-            continue
-        df = centred(pattern)
-        s_vf = per_fit(dv * df)
-        out[:, k] = np.where(s_vf > 0, s_vf * s_vf / np.maximum(s_vv * per_fit(df * df), 1e-300), 0.0)
-    return out
+    da, db = centred(a), centred(b)
+    s_ab = per_point(da * db)
+    return np.where(s_ab > 0, s_ab * s_ab / np.maximum(per_point(da * da) * per_point(db * db), 1e-300), 0.0)
 
 
 def _at(values: np.ndarray, ids: np.ndarray) -> np.ndarray:
