@@ -71,9 +71,8 @@ def shifted_table(table: LightFieldTable, devignetting: np.ndarray, shift_px: np
     u_per_px = table.aperture_radius_m / table.micro_image_radius_px
     white = np.asarray(devignetting)
     # The table's weights are the white image over one normalising constant.
-    probe = table.pixel_index[:: max(1, table.n_samples // 10_000)]
-    probe_w = table.weight[:: max(1, table.n_samples // 10_000)]
-    norm = float(np.median(white.reshape(-1)[probe] / np.maximum(probe_w, 1e-6)))
+    every = max(1, table.n_samples // 10_000)
+    norm = float(np.median(white.reshape(-1)[table.pixel_index[::every]] / np.maximum(table.weight[::every], 1e-6)))
     steps_px = (table.basis_m @ _NEIGHBOURS.T).T / m_per_px  # each neighbour's centre from the lens's
     # Each lens's micro-image centre: its first sample's pixel centre less that pixel's offset from it, -(u, v).
     old = np.column_stack(np.divmod(table.pixel_index[table.lens_start[:-1]], table.width)[::-1]).astype(np.float64)
