@@ -18,6 +18,8 @@ parameter object stored with every result::
               # with every neighbour's light as the stages before left it
     peaks   = drop_misfits(drop_extended(...))            # analysis.depth.quality: light that does not
               # converge to a point, and the final table's misfit limit (max_fit_residual)
+    peaks   = sharpen_blurred(fitter, peaks, fit)         # analysis.depth.deblend: the blurred ones'
+              # last estimate, weighed more sharply; it moves fits and decides nothing
     X, Y, Z = to_physical(peaks.x, peaks.y, peaks.alpha, grid, ...)  # analysis.camera.coordinates
 
 Each stage is also callable on its own; :func:`process` runs them all and :func:`process_many`
@@ -54,7 +56,7 @@ from analysis.calibration.drift import LatticeDrift, block_phases, estimate_drif
 from analysis.camera.coordinates import Calibration3D, ThinLensCalibration, coordinate_warnings, to_physical
 from analysis.camera.image_grid import ImageGrid
 from analysis.camera.model import IDEAL_POINT_SPREAD_PX, CameraModel
-from analysis.depth.deblend import deblend, refit_blurred, split_shared
+from analysis.depth.deblend import deblend, refit_blurred, sharpen_blurred, split_shared
 from analysis.depth.prior import apply_depth_prior
 from analysis.depth.quality import FIT_RESIDUAL_SLACK, converges, drop_extended, drop_misfits, patterned, too_close
 from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
@@ -266,6 +268,9 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
             peaks, fit, share = drop_extended(fitter, peaks, fit)
             peaks, fit, share = drop_misfits(fitter, peaks, fit, share, limit=params.max_fit_residual)
             quality = {"leftover": share}
+        if params.deblend and len(peaks):
+            with clock.stage("sharpen"):
+                peaks, fit = sharpen_blurred(fitter, peaks, fit)
     if len(peaks) == 0:
         if len(tracks):
             warnings.append("particles were seen, but none is brightest inside the alpha range "
