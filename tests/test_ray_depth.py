@@ -705,3 +705,22 @@ def test_the_last_estimate_of_blurred_particles_is_sharper():
     assert np.mean(before) < -0.005, before  # nearer focus (noise-free: -0.008)
     assert abs(np.mean(after)) < 0.6 * abs(np.mean(before)), (before, after)
     assert np.sqrt(np.mean(after ** 2)) < 0.8 * np.sqrt(np.mean(before ** 2)), (before, after)
+
+
+def test_a_candidate_faint_in_the_coarse_pass_keeps_its_coarse_fit():
+    """``coarse_floor``: a candidate whose coarse pass finds no more light than that skips the fine
+    pass (it keeps the coarse result, and stays under the floor); the others fit as before."""
+    blur = np.linspace(2.0, 6.0, 9)
+    model, table, s_hat, c, particles, _ = _isolated_particles(640, 12.0, blur)
+    brightness = np.where(np.arange(blur.size) % 2 == 0, 1800.0, 60.0)  # every other one faint
+    image = render_exposure(model, dataclasses.replace(particles, brightness_dn=brightness), seed=5, noise=False)
+    options = dict(background=0.0, aperture_per_lens_plane=aperture_per_lens_plane(model.optics))
+    full = fit_rays(image, table, s_hat[:, 0], s_hat[:, 1], 1.0 / (1.0 - c), **options)
+    floor = 0.5 * float(np.min(full.intensity[brightness > 100]))
+    screened = fit_rays(image, table, s_hat[:, 0], s_hat[:, 1], 1.0 / (1.0 - c), coarse_floor=floor, **options)
+    faint = brightness < 100
+    assert np.all(full.intensity[faint] > 0) and np.all(full.intensity[faint] < floor)
+    for name in ("sx_m", "sy_m", "alpha", "intensity", "residual"):
+        assert np.array_equal(getattr(screened, name)[~faint], getattr(full, name)[~faint]), name
+    assert np.all(screened.intensity[faint] <= floor)
+    assert not np.allclose(screened.alpha[faint], full.alpha[faint], rtol=0, atol=1e-7)  # no fine pass

@@ -382,7 +382,7 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
              reach_pitches: float = 1.2, blur_px: float = DEFAULT_BLUR_PX, subtract: np.ndarray | None = None,
              own: RayFit | None = None, prior_alpha: np.ndarray | None = None,
              prior_sigma: np.ndarray | None = None, prior_outlier: float = 0.05, saturation: float = 4095.0,
-             recentre: int = 0, cache: Cache | None = None) -> RayFit:
+             recentre: int = 0, coarse_floor: float = 0.0, cache: Cache | None = None) -> RayFit:
     """Refine position and depth of particles by fitting the forward model to the raw samples.
 
     Two passes (:class:`FitGrid`): a coarse grid of depths over ``alpha0 +- alpha_half_range`` and
@@ -446,6 +446,9 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
         alpha at 5-13 pitches of blur), and a fine pass about that depth alone cannot reach the
         true one. Worth it where the neighbours' light is off the pixels (``own``): with it on, a
         wider search lets a fit slide toward a partner on its line of sight.
+    coarse_floor : float
+        Particles whose coarse pass finds at most this intensity keep the coarse result, without
+        the fine pass (most of a fit's cost): candidates far too faint to be particles.
     cache : Cache, optional
         Keeps the table's lens index between calls.
 
@@ -486,7 +489,7 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
     out = np.empty((n, 7))
     kern.fit_all(g.centres, g.sample_ptr, g.lens_ptr, uv, values, censored, sx0, sy0, c_lo, c_hi,
                  idx.cells(aperture_per_lens_plane), _grid_pass(coarse, idx, blur_px), _grid_pass(fine, idx, blur_px),
-                 kern.PriorTerms(c_prior, prior_k, prior_floor), int(recentre), out,
+                 kern.PriorTerms(c_prior, prior_k, prior_floor), int(recentre), float(coarse_floor), out,
                  *_balanced_slots(g.sample_ptr[g.lens_ptr[1:]] - g.sample_ptr[g.lens_ptr[:-1]],
                                   numba.get_num_threads()))
     return RayFit(sx_m=out[:, 0], sy_m=out[:, 1], alpha=1.0 / (1.0 - out[:, 2]), intensity=out[:, 3],

@@ -53,10 +53,11 @@ class PriorTerms(NamedTuple):
 
 @numba.njit(cache=True, parallel=True, fastmath=FASTMATH)
 def fit_all(centres, sample_ptr, lens_ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, cells, coarse, fine, prior,
-            recentre, out, order, slot_ptr):
+            recentre, coarse_floor, out, order, slot_ptr):
     # Per particle, a coarse grid search over [c_lo, c_hi] then a fine one around its result,
     # centred again on its own result up to `recentre` times while that lies beyond
-    # RECENTRE_FRACTION of the window from the centre;
+    # RECENTRE_FRACTION of the window from the centre; a particle whose coarse intensity is at most
+    # `coarse_floor` keeps the coarse result;
     # `coarse` and `fine` are GridPass tuples, `prior` a PriorTerms tuple (one entry per particle).
     # One slot of particles (order[slot_ptr[s]:slot_ptr[s + 1]]) per prange iteration, one slot per
     # thread; each particle writes only its own row of `out`.
@@ -71,7 +72,7 @@ def fit_all(centres, sample_ptr, lens_ptr, uv, values, censored, sx0, sy0, c_lo,
             first = np.empty(7)
             _fit_one(cen, ptr, uv, values, censored, sx0[p], sy0[p], c_lo[p], c_hi[p], coarse, cells, c_prior[p],
                      prior_k[p], prior_floor[p], first)
-            if first[3] <= 0.0:
+            if first[3] <= max(coarse_floor, 0.0):
                 out[p, :] = first
                 continue
             step = (c_hi[p] - c_lo[p]) / max(n_c - 1, 1)
