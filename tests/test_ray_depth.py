@@ -508,26 +508,34 @@ def test_recentring_the_fine_pass_reaches_the_depth_of_particles_under_a_wider_b
     assert np.sqrt(np.mean(error[DEBLEND_RECENTRE] ** 2)) < 1.2e-4, error
 
 
-def test_refitting_crowded_blurred_particles_without_their_neighbours_light():
-    """Blurred particles 2 pitches apart share most lenses: fitted together with their neighbours'
-    light, their depths are off; :func:`refit_blurred` refits each strongly blurred one with the
-    others' light (as their first fits put it) taken off, and only those."""
+def _first_fits(model, table, image, s_hat, alpha0, **options):
+    """A pipeline-like fitter on a noise-free image, its first fits from ``alpha0`` and their peaks."""
     from analysis.detection.curves import Peaks
-    from analysis.depth.deblend import refit_blurred
     from analysis.depth.refine import COARSE_LATERAL_PITCHES, RayFitter
 
-    blur = np.array([4.0, 4.5, 5.0, 4.2, 1.0, 4.8, 4.4, 4.6, 5.2])  # disc diameters; the middle one near focus
-    model, table, s_hat, c, _, image = _isolated_particles(640, 2.0, blur)
-    truth = 1.0 / (1.0 - c)
     fitter = RayFitter(image, table, table.grid, background=0.0,
                        aperture_per_lens_plane=aperture_per_lens_plane(model.optics), alpha_half_range=0.004,
                        coarse=PIPELINE_COARSE._replace(lateral_pitches=COARSE_LATERAL_PITCHES), min_intensity=100.0,
-                       max_residual=0.35, merge_radius_px=1.5, merge_alpha=0.0026)
-    first = fitter.fit(s_hat[:, 0], s_hat[:, 1], truth)
+                       max_residual=0.35, merge_radius_px=1.5, merge_alpha=0.0026, **options)
+    first = fitter.fit(s_hat[:, 0], s_hat[:, 1], alpha0)
     n = len(first)
     x, y = table.grid.to_pixels(first.sx_m, first.sy_m)
     peaks = Peaks(track=np.arange(n), alpha=first.alpha, x=np.asarray(x, float), y=np.asarray(y, float),
                   peak_height=np.ones(n), peak_width=np.ones(n), residual=first.residual, prominence=np.ones(n))
+    return fitter, peaks, first
+
+
+def test_refitting_crowded_blurred_particles_without_their_neighbours_light():
+    """Blurred particles 2 pitches apart share most lenses: fitted together with their neighbours'
+    light, their depths are off; :func:`refit_blurred` refits each strongly blurred one with the
+    others' light (as their first fits put it) taken off, and only those."""
+    from analysis.depth.deblend import refit_blurred
+
+    blur = np.array([4.0, 4.5, 5.0, 4.2, 1.0, 4.8, 4.4, 4.6, 5.2])  # disc diameters; the middle one near focus
+    model, table, s_hat, c, _, image = _isolated_particles(640, 2.0, blur)
+    truth = 1.0 / (1.0 - c)
+    fitter, peaks, first = _first_fits(model, table, image, s_hat, truth)
+    n = len(first)
     kept, again = refit_blurred(fitter, peaks, first)
     blurred = fitter.strongly_blurred(first.alpha)
     assert len(kept) == n and blurred.sum() >= 7 and not blurred[4]
@@ -676,24 +684,15 @@ def test_the_last_estimate_of_blurred_particles_is_sharper():
     near the centre of its window where the cost is flat: strongly blurred particles are left nearer
     focus. :func:`sharpen_blurred` weighs the candidates more sharply, moves them toward their depth,
     and keeps every fit."""
-    from analysis.detection.curves import Peaks
     from analysis.depth.deblend import refit_blurred, sharpen_blurred
-    from analysis.depth.refine import COARSE_LATERAL_PITCHES, RayFitter
     from analysis.simulation.camera_effects import CameraEffects
     from analysis.simulation.realism import Realism
 
     camera = CameraEffects.build(Realism(blur_px=0.8), serial="A202160042")
     blur = np.linspace(4.0, 10.0, 16) * np.tile([1.0, -1.0], 8)
     model, table, s_hat, c, _, image = _isolated_particles(1280, 24.0, blur, camera=camera)
-    fitter = RayFitter(image, table, table.grid, background=0.0, blur_px=0.8,
-                       aperture_per_lens_plane=aperture_per_lens_plane(model.optics), alpha_half_range=0.004,
-                       coarse=PIPELINE_COARSE._replace(lateral_pitches=COARSE_LATERAL_PITCHES), min_intensity=100.0,
-                       max_residual=0.35, merge_radius_px=1.5, merge_alpha=0.0026)
-    first = fitter.fit(s_hat[:, 0], s_hat[:, 1], 1.0 / (1.0 - c))
+    fitter, peaks, first = _first_fits(model, table, image, s_hat, 1.0 / (1.0 - c), blur_px=0.8)
     n = len(first)
-    x, y = table.grid.to_pixels(first.sx_m, first.sy_m)
-    peaks = Peaks(track=np.arange(n), alpha=first.alpha, x=np.asarray(x, float), y=np.asarray(y, float),
-                  peak_height=np.ones(n), peak_width=np.ones(n), residual=first.residual, prominence=np.ones(n))
     peaks, refit = refit_blurred(fitter, peaks, first)
     kept, sharp = sharpen_blurred(fitter, peaks, refit)
     assert len(kept) == len(sharp) == n

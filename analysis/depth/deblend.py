@@ -172,12 +172,9 @@ def _refit_where_acceptable(fitter: RayFitter, peaks: Peaks, fit: RayFit, rows: 
     if rows.size == 0:
         return peaks, fit
     sub = fit.take(rows)
-    grids = {}
-    if temperature != FINE_TEMPERATURE:
-        grids = dict(fine=FINE_GRID._replace(temperature=temperature),
-                     wide_fine=WIDE_FINE_GRID._replace(temperature=temperature))
     new = fitter.fit(sub.sx_m, sub.sy_m, sub.alpha, subtract=fitter.render(fit), own=sub, recentre=DEBLEND_RECENTRE,
-                     **grids)
+                     fine=FINE_GRID._replace(temperature=temperature),
+                     wide_fine=WIDE_FINE_GRID._replace(temperature=temperature))
     ok = np.flatnonzero(fitter.acceptable(new))
     return replace_fits(fitter.grid, peaks, fit, rows[ok], new.take(ok))
 
