@@ -52,6 +52,17 @@ def depth_error_over_nn(exposure, alpha, truth, nn):
     return (np.asarray(exposure.model.optics.z_of_alpha(alpha)) - truth["Z"]) / nn
 
 
+def _peaks_at(grid, fit):
+    """Peaks standing for ``fit``'s particles (one track each), at their fitted places."""
+    from analysis.detection.curves import Peaks
+
+    n = len(fit)
+    x, y = grid.to_pixels(fit.sx_m, fit.sy_m)
+    return Peaks(track=np.arange(n), alpha=fit.alpha, x=np.atleast_1d(x).astype(float),
+                 y=np.atleast_1d(y).astype(float), peak_height=np.ones(n), peak_width=np.ones(n),
+                 residual=fit.residual, prominence=np.ones(n))
+
+
 def test_fit_recovers_depth_of_defocused_particles_from_a_poor_start(scene):
     exposure, calibration, table, truth, nn, s_hat, noise = scene
     rng = np.random.default_rng(0)
@@ -252,7 +263,6 @@ def test_point_counts_skip_only_points_settled_at_every_position():
 
 def test_deblending_drops_a_particle_seen_twice(scene):
     """A second fit of one particle's light is left with nothing of its own once the first is refitted."""
-    from analysis.detection.curves import Peaks
     from analysis.depth.deblend import deblend
     from analysis.depth.refine import RayFitter
 
@@ -265,10 +275,7 @@ def test_deblending_drops_a_particle_seen_twice(scene):
     twice = dataclasses.replace(twice, sx_m=twice.sx_m + 0.3 * pitch, alpha=twice.alpha + 0.0015)
     fits = RayFit.concat(first, twice)
     grid = table.grid
-    x, y = grid.to_pixels(fits.sx_m, fits.sy_m)
-    n = len(fits)
-    peaks = Peaks(track=np.arange(n), alpha=fits.alpha, x=np.asarray(x, float), y=np.asarray(y, float),
-                  peak_height=np.ones(n), peak_width=np.ones(n), residual=fits.residual, prominence=np.ones(n))
+    peaks = _peaks_at(grid, fits)
     fitter = RayFitter(exposure.image, table, grid, background=noise.background, aperture_per_lens_plane=ratio,
                        alpha_half_range=0.004, coarse=PIPELINE_COARSE, min_intensity=8 * noise.sigma,
                        max_residual=0.35, merge_radius_px=1.5, merge_alpha=0.0026)
@@ -291,7 +298,6 @@ def _line_of_sight_scene(alphas, brightness):
 
 
 def _one_fit(model, table, s_hat, image, alpha0):
-    from analysis.detection.curves import Peaks
     from analysis.depth.refine import RayFitter
 
     ratio = aperture_per_lens_plane(model.optics)
@@ -300,11 +306,7 @@ def _one_fit(model, table, s_hat, image, alpha0):
                        alpha_half_range=0.004, coarse=PIPELINE_COARSE, min_intensity=100.0,
                        max_residual=0.35, merge_radius_px=1.5, merge_alpha=0.0026)
     fit = fitter.fit(np.array([s_hat[0]]), np.array([s_hat[1]]), np.array([alpha0]))
-    x, y = table.grid.to_pixels(fit.sx_m, fit.sy_m)
-    peaks = Peaks(track=np.zeros(1, np.int64), alpha=fit.alpha, x=np.atleast_1d(x).astype(float),
-                  y=np.atleast_1d(y).astype(float), peak_height=np.ones(1), peak_width=np.ones(1),
-                  residual=fit.residual, prominence=np.ones(1))
-    return fitter, peaks, fit
+    return fitter, _peaks_at(table.grid, fit), fit
 
 
 def test_a_fit_holding_two_particles_on_one_line_of_sight_is_split():
@@ -510,7 +512,6 @@ def test_recentring_the_fine_pass_reaches_the_depth_of_particles_under_a_wider_b
 
 def _first_fits(model, table, image, s_hat, alpha0, **options):
     """A pipeline-like fitter on a noise-free image, its first fits from ``alpha0`` and their peaks."""
-    from analysis.detection.curves import Peaks
     from analysis.depth.refine import COARSE_LATERAL_PITCHES, RayFitter
 
     fitter = RayFitter(image, table, table.grid, background=0.0,
@@ -518,11 +519,7 @@ def _first_fits(model, table, image, s_hat, alpha0, **options):
                        coarse=PIPELINE_COARSE._replace(lateral_pitches=COARSE_LATERAL_PITCHES), min_intensity=100.0,
                        max_residual=0.35, merge_radius_px=1.5, merge_alpha=0.0026, **options)
     first = fitter.fit(s_hat[:, 0], s_hat[:, 1], alpha0)
-    n = len(first)
-    x, y = table.grid.to_pixels(first.sx_m, first.sy_m)
-    peaks = Peaks(track=np.arange(n), alpha=first.alpha, x=np.asarray(x, float), y=np.asarray(y, float),
-                  peak_height=np.ones(n), peak_width=np.ones(n), residual=first.residual, prominence=np.ones(n))
-    return fitter, peaks, first
+    return fitter, _peaks_at(table.grid, first), first
 
 
 def test_refitting_crowded_blurred_particles_without_their_neighbours_light():
@@ -553,15 +550,12 @@ def test_refitting_crowded_blurred_particles_without_their_neighbours_light():
 
 def _refit_pair(alphas, truth_alphas, brightness):
     """:func:`refit_blurred` on two fits on one chief ray (as :func:`_pair_fits` makes them)."""
-    from analysis.detection.curves import Peaks
     from analysis.detection.rejections import Rejections
     from analysis.depth.deblend import refit_blurred
 
     fitter, fit = _pair_fits(alphas, truth_alphas, brightness)
     fitter = dataclasses.replace(fitter, rejected=Rejections())
-    x, y = fitter.grid.to_pixels(fit.sx_m, fit.sy_m)
-    peaks = Peaks(track=np.arange(2), alpha=fit.alpha, x=np.asarray(x, float), y=np.asarray(y, float),
-                  peak_height=np.ones(2), peak_width=np.ones(2), residual=fit.residual, prominence=np.ones(2))
+    peaks = _peaks_at(fitter.grid, fit)
     assert fitter.strongly_blurred(fit.alpha).all()
     _, kept = refit_blurred(fitter, peaks, fit)
     return fitter, kept
