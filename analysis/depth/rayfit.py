@@ -295,10 +295,10 @@ def _in_chunks(n: int, part: Callable[[slice], np.ndarray], columns: int = 1) ->
 
 
 def _sum_per_point(values: np.ndarray, g: Gathered, n: int) -> np.ndarray:
-    per_lens = np.add.reduceat(values, g.sample_ptr[:-1]) if values.size else np.zeros(0)
-    per_lens = np.where(np.diff(g.sample_ptr) > 0, per_lens, 0.0)
-    owner = np.repeat(np.arange(n), np.diff(g.lens_ptr))
-    return np.bincount(owner, weights=per_lens, minlength=n)
+    """The sum of ``values`` (one per gathered sample) over each of the ``n`` points' samples.
+    (``np.add.reduceat`` over the lenses failed where a point's last lens had no sample.)"""
+    lens_owner = np.repeat(np.arange(n), np.diff(g.lens_ptr))
+    return np.bincount(np.repeat(lens_owner, np.diff(g.sample_ptr)), weights=values, minlength=n)
 
 
 def render_fits(table: LightFieldTable, fit: RayFit, *, aperture_per_lens_plane: float, blur_px: float = DEFAULT_BLUR_PX,
