@@ -63,6 +63,10 @@ class PipelineParams:
     deblend
         Refit every particle with its neighbours' fitted light taken off its pixels
         (:func:`deblend`): in crowds their blurs overlap and pull each other's fits.
+    late_pass
+        With ``deblend``: once the particles are deblended, one more detection pass with their
+        light taken off, and all of them deblended again with what it finds (faint particles
+        blurred over many pitches among brighter ones, whose refocused spots merged with theirs).
     depth_prior
         Where a particle's pixels leave its depth open (its light falls in one micro-lens) and its
         neighbours lie on one surface, take the depth that surface predicts as a prior
@@ -119,6 +123,7 @@ class PipelineParams:
     fit_depths: int = 17
     fit_lateral: int = 5
     deblend: bool = True
+    late_pass: bool = True
     depth_prior: bool = True
     min_separation: float = 0.3
     pixel_size_mm: float | None = None

@@ -254,6 +254,10 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
             if params.shadow_probe > 0:
                 with clock.stage("split"):
                     peaks, fit = split_shared(fitter, peaks, fit, shadow_probe=params.shadow_probe)
+            if params.late_pass:
+                with clock.stage("late_pass"):
+                    peaks, tracks, fit = _late_pass(fitter, table, background, params, alphas, limits, threshold,
+                                                    peaks, tracks, fit, lens_noise)
         if params.depth_prior and len(peaks) > 1:
             with clock.stage("depth_prior"):
                 peaks, fit = apply_depth_prior(fitter, peaks, fit)
@@ -278,6 +282,23 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         else:
             warnings.append("no particles found above the noise; check the exposure and the threshold")
     return finish(peaks, tracks, stack, sub, threshold, fit, quality)
+
+
+def _late_pass(fitter: RayFitter, table: LightFieldTable, background: BackgroundMap, params: PipelineParams,
+               alphas: np.ndarray, limits: tuple[float, float], threshold: float, peaks: Peaks, tracks: Tracks,
+               fit: RayFit, lens_noise: np.ndarray) -> tuple[Peaks, Tracks, RayFit]:
+    """One more detection pass once the particles are deblended, and all deblended again with what
+    it finds. A particle blurred over many pitches among brighter ones often makes no peak of its
+    own in the first passes (a wider sensor blur widens its refocused spot, which merges with its
+    neighbours'), while started at its true place it fits well with the others' light taken off.
+    The deblended fits explain their own light better than the first ones, so the residual shows
+    more of it; the second deblending drops the new fits that prove to be a neighbour's light."""
+    found = _look_again(fitter, table, background, params, alphas, limits, threshold, peaks, tracks, fit, lens_noise)
+    if found is None:
+        return peaks, tracks, fit
+    peaks, tracks, fit = found
+    peaks, fit = deblend(fitter, peaks, fit)
+    return peaks, tracks, fit
 
 
 def _lattice_drift(exposure: Exposure, calibration: Calibration, cache: Cache, noise_dn: float) -> LatticeDrift | None:
