@@ -195,9 +195,9 @@ def test_a_partner_with_a_seventh_of_the_light_is_found_where_its_light_converge
 def test_the_late_pass_finds_blurred_particles_the_first_passes_missed(seed):
     """A crop of the 400-particle cloud in front of focus, through a 0.8 px blur with a 10x
     brightness spread: faint particles blurred over many pitches among brighter ones make no peak
-    of their own at first. The pass after deblending finds some (seeds 1-8: 1-6 more), and its new
-    fits are deblended with the rest, so few false ones come with them. Seed 6 also once stopped
-    the first fits (a point whose last gathered lens had no sample)."""
+    of their own at first. The pass after deblending finds some, and its new fits are deblended
+    with the rest, so few false ones come with them. Seed 6 also once stopped the first fits (a
+    point whose last gathered lens had no sample)."""
     from analysis.simulation.camera_effects import CameraEffects
     from analysis.simulation.realism import Realism
 

@@ -103,9 +103,9 @@ def add_pipeline_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--no-depth-prior", action="store_true",
                    help="depth from each particle's own pixels only: no prior from neighbours on one surface "
                         "for particles whose light falls in one micro-lens (their alpha_std stays wide)")
-    g.add_argument("--no-late-pass", action="store_true",
-                   help="skip the detection pass after deblending: about 1.2-1.5x faster, but finds fewer faint "
-                        "particles blurred over many pitches among brighter ones")
+    g.add_argument("--late-pass", action="store_true",
+                   help="one more detection pass after deblending: finds more of the faint particles blurred over "
+                        "many pitches among brighter ones (realistic crowds: about 1 %% more), at 1.25-1.36x the time")
 
     g = p.add_argument_group("physical coordinates (default: the metadata's thin-lens model)")
     g.add_argument("--metric-calibration", type=Path, default=None, metavar="FILE",
@@ -126,7 +126,7 @@ def params_from_args(args: argparse.Namespace) -> Any:
         aperture_fraction=args.aperture_fraction, blur_sigma_px=args.blur_sigma,
         grid_oversample=args.grid_oversample, threshold=args.threshold, threshold_sigma=args.threshold_sigma,
         min_pixels=args.min_pixels, link_radius_px=args.link_radius, min_prominence=args.min_prominence,
-        depth_prior=not args.no_depth_prior, late_pass=not args.no_late_pass,
+        depth_prior=not args.no_depth_prior, late_pass=args.late_pass,
         pixel_size_mm=args.pixel_size_mm, depth_per_alpha_mm=args.depth_per_alpha_mm,
         reference_alpha=args.reference_alpha, reference_z_mm=args.reference_z_mm)
 
