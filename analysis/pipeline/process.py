@@ -299,7 +299,7 @@ def _late_pass(fitter: RayFitter, table: LightFieldTable, background: Background
     more of it; the second deblending drops the new fits that prove to be a neighbour's light.
     What this pass finds must also show a point's pattern within its lenses (:func:`patterned`):
     the residual of a realistic frame keeps the light of reflections and glints, and without it 2
-    of 16 held-out realistic clouds (seeds 33-41) kept a particle on a reflection. It keeps about
+    of 8 held-out realistic clouds (seeds 33-41) kept a particle on a reflection. It keeps about
     half of what the pass gains (tuning seeds 25-32: 35 of 71 particles; :func:`converges`: 12)."""
     n_tracks = len(tracks)
     found = _look_again(fitter, table, background, params, alphas, limits, threshold, peaks, tracks, fit, lens_noise)
