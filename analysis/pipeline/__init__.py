@@ -4,6 +4,7 @@
 - ``tables``: the look-up tables of a calibration, from the caller's cache or disk, or built.
 - ``candidates``: detection, linking and peaks on the product stack.
 - ``stages``: timing and cost-weighted progress of the stages.
+- ``passes``: the detection passes after the first, on the raw image with the found particles' light off.
 - ``process``: :func:`~analysis.pipeline.process.process` and ``process_many``.
 - ``batch``: the exposure files a list of paths names, and each exposure's calibration from a
   folder of white images (loaded once per camera and zoom/focus setting).

@@ -60,11 +60,10 @@ from analysis.camera.image_grid import ImageGrid
 from analysis.camera.model import IDEAL_POINT_SPREAD_PX, CameraModel
 from analysis.depth.deblend import deblend, refit_blurred, sharpen_blurred, split_shared
 from analysis.depth.prior import apply_depth_prior
-from analysis.depth.quality import FIT_RESIDUAL_SLACK, converges, drop_extended, drop_misfits, patterned, too_close
+from analysis.depth.quality import FIT_RESIDUAL_SLACK, drop_extended, drop_misfits, patterned, too_close
 from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
 from analysis.depth.refine import (COARSE_LATERAL_PITCHES, COARSE_TEMPERATURE, PROBE_RESIDUAL, SAME_DEPTH_SIGMAS,
-                                   RayFitter, accept, inside, outshines_misfit, refine_peaks, residual_image)
-from analysis.depth.table_index import table_index
+                                   RayFitter, accept, inside, refine_peaks)
 from analysis.detection.curves import Peaks, Tracks
 from analysis.detection.rejections import Rejections
 from analysis.errors import CameraMismatchError, MetadataError
@@ -77,9 +76,10 @@ from analysis.lightfield.samples import background_and_noise, select_samples
 from analysis.lightfield.drifted_table import shifted_table
 from analysis.lightfield.table import LightFieldTable
 
-from .candidates import below_local_noise, locate, product_threshold
+from .candidates import locate, product_threshold
 from .depth_range import SURVEY_GRID, edge_maxima, fit_limits, lattice_step, range_of_peaks, survey_alphas
 from .params import PipelineParams
+from .passes import above_noise, late_pass, look_again
 from .result import Result
 from .stages import Progress, StageClock, trim_heap
 from .tables import (drifted_fit_table, get_table, micro_image_model, normalisation_keys, release_table_pages,
@@ -89,10 +89,6 @@ log = logging.getLogger(__name__)
 
 #: Above this fraction of saturated green pixels an exposure holds no usable particle image.
 SATURATED_FRAME_FRACTION = 0.2
-#: A new particle must be this fraction as bright as the brightest found particle whose light
-#: reaches it (left-over light of an imperfectly modelled one: a fifth of it or less), or outshine
-#: their misfit (:func:`analysis.depth.refine.outshines_misfit`).
-NEW_FRACTION = 0.2
 
 
 def process(exposure: Exposure, calibration: Calibration, params: PipelineParams | None = None, *,
@@ -239,12 +235,12 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     fit, quality = None, {}
     if fitter is not None and len(peaks):
         with clock.stage("refine"):
-            peaks = _above_noise(fitter, peaks, lens_noise, threshold)
+            peaks = above_noise(fitter, peaks, lens_noise, threshold)
             peaks, fit = inside(fitter, *refine_peaks(fitter, peaks, shadow_probe=params.shadow_probe), limits)
         with clock.stage("more_passes"):
             for _ in range(params.passes - 1):
-                found = _look_again(fitter, table, background, params, alphas, limits, threshold, peaks, tracks, fit,
-                                    lens_noise)
+                found = look_again(fitter, table, background, params, alphas, limits, threshold, peaks, tracks, fit,
+                                   lens_noise)
                 if found is None:
                     break
                 peaks, tracks, fit = found
@@ -258,8 +254,8 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                     peaks, fit = split_shared(fitter, peaks, fit, shadow_probe=params.shadow_probe)
             if params.late_pass:
                 with clock.stage("late_pass"):
-                    peaks, tracks, fit = _late_pass(fitter, table, background, params, alphas, limits, threshold,
-                                                    peaks, tracks, fit, lens_noise)
+                    peaks, tracks, fit = late_pass(fitter, table, background, params, alphas, limits, threshold,
+                                                   peaks, tracks, fit, lens_noise)
             else:
                 clock.skip("late_pass")  # off by default: progress should not wait for it
         if params.depth_prior and len(peaks) > 1:
@@ -286,37 +282,6 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         else:
             warnings.append("no particles found above the noise; check the exposure and the threshold")
     return finish(peaks, tracks, stack, sub, threshold, fit, quality)
-
-
-def _late_pass(fitter: RayFitter, table: LightFieldTable, background: BackgroundMap, params: PipelineParams,
-               alphas: np.ndarray, limits: tuple[float, float], threshold: float, peaks: Peaks, tracks: Tracks,
-               fit: RayFit, lens_noise: np.ndarray) -> tuple[Peaks, Tracks, RayFit]:
-    """One more detection pass once the particles are deblended, and all deblended again with what
-    it finds. A particle blurred over many pitches among brighter ones often makes no peak of its
-    own in the first passes (a wider sensor blur widens its refocused spot, which merges with its
-    neighbours'), while started at its true place it fits well with the others' light taken off.
-    The deblended fits explain their own light better than the first ones, so the residual shows
-    more of it; the second deblending drops the new fits that prove to be a neighbour's light.
-    What this pass finds must also show a point's pattern within its lenses (:func:`patterned`):
-    the residual of a realistic frame keeps the light of reflections and glints, and without it 2
-    of 8 held-out realistic clouds (seeds 33-41) kept a particle on a reflection. It keeps about
-    half of what the pass gains (tuning seeds 25-32: 35 of 71 particles; :func:`converges`: 12)."""
-    n_tracks = len(tracks)
-    found = _look_again(fitter, table, background, params, alphas, limits, threshold, peaks, tracks, fit, lens_noise)
-    if found is None:
-        return peaks, tracks, fit
-    new = np.flatnonzero(found[0].track >= n_tracks)
-    spread = new[~patterned(fitter, found[2].take(new), fitter.render(found[2]))]
-    if spread.size == new.size:  # nothing new left: the fits stand as they were
-        fitter.reject(found[0].take(spread), found[2].take(spread), "extended")
-        return peaks, tracks, fit
-    peaks, tracks, fit = found
-    if spread.size:
-        fitter.reject(peaks.take(spread), fit.take(spread), "extended")
-        keep = np.setdiff1d(np.arange(len(peaks)), spread)
-        peaks, fit = peaks.take(keep), fit.take(keep)
-    peaks, fit = deblend(fitter, peaks, fit)
-    return peaks, tracks, fit
 
 
 def _lattice_drift(exposure: Exposure, calibration: Calibration, cache: Cache, noise_dn: float) -> LatticeDrift | None:
@@ -355,7 +320,7 @@ def _survey(image: np.ndarray, table: LightFieldTable, background: BackgroundMap
     coarse = dataclasses.replace(params, maxima_half_slices=-1)  # the range, not every particle
     peaks, _ = locate(products(stack, sub, out=stack), survey, coarse, threshold=threshold)
     if fitter is not None:
-        peaks = _above_noise(fitter, peaks, lens_noise, threshold, record=False)  # not the particles' candidates
+        peaks = above_noise(fitter, peaks, lens_noise, threshold, record=False)  # not the particles' candidates
     alpha = peaks.alpha
     if fitter is not None and len(peaks):
         sx, sy = table.grid.to_lens_plane(peaks.x, peaks.y)
@@ -372,81 +337,6 @@ def _survey(image: np.ndarray, table: LightFieldTable, background: BackgroundMap
                   survey[0], survey[-1], len(fit), point.sum())
         alpha = fit.alpha[point]
     return range_of_peaks(alpha, survey, n_slices=params.n_slices)
-
-
-def _look_again(fitter: RayFitter, table: LightFieldTable, background: BackgroundMap, params: PipelineParams,
-                alphas: np.ndarray, limits: tuple[float, float], threshold: float, peaks: Peaks, tracks: Tracks,
-                fit: RayFit, lens_noise: np.ndarray) -> tuple[Peaks, Tracks, RayFit] | None:
-    """One more detection pass on the raw image with the found particles' light taken off.
-
-    Crowded clusters: blobs of neighbours merge in the product images. Returns the particles with
-    the new ones added, or None when the pass finds none.
-    """
-    if len(peaks) == 0:
-        return None
-    explained = fitter.render(fit)
-    rs = select_samples(residual_image(fitter.image, fitter.table, explained), table, background=background,
-                        noise_sigmas=params.noise_sigmas)  # the residual image (21 MB) goes before the stack
-    # The fits so far touched much of the fit table (60-100 MB on a frame with many candidates):
-    # its pages go back while the stack is made, and are read in again from the file cache.
-    release_table_pages(fitter.table, fitter.cache)
-    trim_heap()
-    rstack = refocus_stack(None, table, alphas, grid=fitter.grid, samples=rs, cache=fitter.cache)
-    rsub = subaperture_image(None, table, fraction=params.aperture_fraction, blur_sigma_px=params.blur_sigma_px,
-                             grid=fitter.grid, samples=rs, cache=fitter.cache)
-    new, new_tracks = locate(products(rstack, rsub, out=rstack), alphas, params, threshold=threshold)
-    del rs, rstack, rsub  # not needed by the fits below (an F01's: 40 MB and more)
-    # Where no found particle's light reaches, the residual is the raw image: its candidates are the
-    # earlier pass's, already fitted and judged, and would be judged alike (realistic off-focus ball,
-    # seed 1: 113 of 510, most on reflections and glints; 8 frames' results the same without them).
-    sx, sy = fitter.grid.to_lens_plane(new.x, new.y)
-    new = new.take(fitter.overlapping_max(sx, sy, new.alpha, fit, np.ones(len(fit))) > 0)
-    # Every candidate above the noise is fitted: a screen by peak height against the found
-    # particles whose light reaches it (0.03 of theirs) dropped faint particles that the tests
-    # after the fit keep (30 more found on 63 realistic exposures, one more false, 1.04-1.08x time).
-    new = _above_noise(fitter, new, lens_noise, threshold)
-    log.debug("another pass: %d candidates", len(new))
-    if len(new) == 0:
-        return None
-    new, new_fit = inside(fitter, *refine_peaks(fitter, new, subtract=explained), limits)
-    # A new one must fit well and be a good part as bright as the particles whose light reaches it,
-    # or fit very well and outshine what their model leaves unexplained, or have light that
-    # converges to a point, which the light their model leaves does not: the faint particles of a
-    # wide brightness spread pass only the last two.
-    neighbour = fitter.overlapping_max(new_fit.sx_m, new_fit.sy_m, new_fit.alpha, fit, fit.intensity)
-    misfit_dn = fitter.overlapping_max(new_fit.sx_m, new_fit.sy_m, new_fit.alpha, fit, fit.intensity * fit.residual)
-    good = (((new_fit.residual <= PROBE_RESIDUAL) & (new_fit.intensity >= NEW_FRACTION * neighbour))
-            | outshines_misfit(new_fit, misfit_dn))
-    if not good.all():
-        rest = np.flatnonzero(~good)
-        good[rest] = converges(fitter, new_fit.take(rest), explained + fitter.render(new_fit.take(good)),
-                               clear=True)
-    fitter.reject(new.take(~good), new_fit.take(~good), "weak_residual")
-    new, new_fit = new.take(good), new_fit.take(good)
-    if len(new) == 0:
-        return None
-    # The new peaks' curves are tracks of the residual's stack: append them to the first pass's,
-    # so each particle's track index still points at its own curve.
-    both = dataclasses.replace(Peaks.concat(peaks, new), track=np.r_[peaks.track, new.track + len(tracks)])
-    # A new fit merges into a found one only if their depths agree within their uncertainties, as
-    # at the end (SAME_DEPTH_SIGMAS): the merge distance alone (4 slices) took a blurred particle
-    # found on a brighter one's line of sight, 4.7 sigma behind it, for that one (dev seed 1).
-    both, both_fit = fitter.unique(both, RayFit.concat(fit, new_fit), settled=len(peaks), max_sigmas=SAME_DEPTH_SIGMAS)
-    if len(both) == len(peaks):
-        return None
-    tracks = Tracks(x=np.vstack([tracks.x, new_tracks.x]), y=np.vstack([tracks.y, new_tracks.y]),
-                    brightness=np.vstack([tracks.brightness, new_tracks.brightness]))
-    return both, tracks, both_fit
-
-
-def _above_noise(fitter: RayFitter, peaks: Peaks, lens_noise: np.ndarray, threshold: float, *,
-                 record: bool = True) -> Peaks:
-    """``peaks`` without those that do not stand out from the local noise (recorded as ``noise`` with
-    ``record``); ``lens_noise``: the noise variance ratio of each lens of the fit's table."""
-    low = below_local_noise(peaks, fitter.grid, table_index(fitter.table, fitter.cache).tree, lens_noise, threshold)
-    if record:
-        fitter.reject(peaks.take(low), None, "noise")
-    return peaks.take(~low)
 
 
 def _separated(fitter: RayFitter, peaks: Peaks, fit: RayFit, grid: ImageGrid, coordinates: Calibration3D,

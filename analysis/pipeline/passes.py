@@ -1,0 +1,144 @@
+"""The detection passes after the first: each looks again at the raw image with the light of the
+particles found so far taken off, and keeps the new candidates that prove to be particles.
+
+:func:`look_again` runs between the first fits and deblending (``PipelineParams.passes``),
+:func:`late_pass` once the particles are deblended (``PipelineParams.late_pass``);
+:func:`above_noise` is the screen every pass's candidates go through before their fits.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from analysis.depth.deblend import deblend
+from analysis.depth.quality import converges, patterned
+from analysis.depth.rayfit import RayFit
+from analysis.depth.refine import (PROBE_RESIDUAL, SAME_DEPTH_SIGMAS, RayFitter, inside, outshines_misfit, refine_peaks,
+                                   residual_image)
+from analysis.depth.table_index import table_index
+from analysis.detection.curves import Peaks, Tracks
+from analysis.lightfield.background import BackgroundMap
+from analysis.lightfield.refocus import products, refocus_stack, subaperture_image
+from analysis.lightfield.samples import select_samples
+from analysis.lightfield.table import LightFieldTable
+
+from .candidates import below_local_noise, locate
+from .params import PipelineParams
+from .stages import trim_heap
+from .tables import release_table_pages
+
+log = logging.getLogger(__name__)
+
+#: A new particle must be this fraction as bright as the brightest found particle whose light
+#: reaches it (left-over light of an imperfectly modelled one: a fifth of it or less), or outshine
+#: their misfit (:func:`analysis.depth.refine.outshines_misfit`).
+NEW_FRACTION = 0.2
+
+
+def look_again(fitter: RayFitter, table: LightFieldTable, background: BackgroundMap, params: PipelineParams,
+               alphas: np.ndarray, limits: tuple[float, float], threshold: float, peaks: Peaks, tracks: Tracks,
+               fit: RayFit, lens_noise: np.ndarray) -> tuple[Peaks, Tracks, RayFit] | None:
+    """One more detection pass on the raw image with the found particles' light taken off.
+
+    Crowded clusters: blobs of neighbours merge in the product images. Returns the particles with
+    the new ones added, or None when the pass finds none.
+    """
+    if len(peaks) == 0:
+        return None
+    explained = fitter.render(fit)
+    rs = select_samples(residual_image(fitter.image, fitter.table, explained), table, background=background,
+                        noise_sigmas=params.noise_sigmas)  # the residual image (21 MB) goes before the stack
+    # The fits so far touched much of the fit table (60-100 MB on a frame with many candidates):
+    # its pages go back while the stack is made, and are read in again from the file cache.
+    release_table_pages(fitter.table, fitter.cache)
+    trim_heap()
+    rstack = refocus_stack(None, table, alphas, grid=fitter.grid, samples=rs, cache=fitter.cache)
+    rsub = subaperture_image(None, table, fraction=params.aperture_fraction, blur_sigma_px=params.blur_sigma_px,
+                             grid=fitter.grid, samples=rs, cache=fitter.cache)
+    new, new_tracks = locate(products(rstack, rsub, out=rstack), alphas, params, threshold=threshold)
+    del rs, rstack, rsub  # not needed by the fits below (an F01's: 40 MB and more)
+    # Where no found particle's light reaches, the residual is the raw image: its candidates are the
+    # earlier pass's, already fitted and judged, and would be judged alike (realistic off-focus ball,
+    # seed 1: 113 of 510, most on reflections and glints; 8 frames' results the same without them).
+    sx, sy = fitter.grid.to_lens_plane(new.x, new.y)
+    new = new.take(fitter.overlapping_max(sx, sy, new.alpha, fit, np.ones(len(fit))) > 0)
+    # Every candidate above the noise is fitted: a screen by peak height against the found
+    # particles whose light reaches it (0.03 of theirs) dropped faint particles that the tests
+    # after the fit keep (30 more found on 63 realistic exposures, one more false, 1.04-1.08x time).
+    new = above_noise(fitter, new, lens_noise, threshold)
+    log.debug("another pass: %d candidates", len(new))
+    if len(new) == 0:
+        return None
+    new, new_fit = inside(fitter, *refine_peaks(fitter, new, subtract=explained), limits)
+    # A new one must fit well and be a good part as bright as the particles whose light reaches it,
+    # or fit very well and outshine what their model leaves unexplained, or have light that
+    # converges to a point, which the light their model leaves does not: the faint particles of a
+    # wide brightness spread pass only the last two.
+    neighbour = fitter.overlapping_max(new_fit.sx_m, new_fit.sy_m, new_fit.alpha, fit, fit.intensity)
+    misfit_dn = fitter.overlapping_max(new_fit.sx_m, new_fit.sy_m, new_fit.alpha, fit, fit.intensity * fit.residual)
+    good = (((new_fit.residual <= PROBE_RESIDUAL) & (new_fit.intensity >= NEW_FRACTION * neighbour))
+            | outshines_misfit(new_fit, misfit_dn))
+    if not good.all():
+        rest = np.flatnonzero(~good)
+        good[rest] = converges(fitter, new_fit.take(rest), explained + fitter.render(new_fit.take(good)),
+                               clear=True)
+    fitter.reject(new.take(~good), new_fit.take(~good), "weak_residual")
+    new, new_fit = new.take(good), new_fit.take(good)
+    if len(new) == 0:
+        return None
+    # The new peaks' curves are tracks of the residual's stack: append them to the first pass's,
+    # so each particle's track index still points at its own curve.
+    both = dataclasses.replace(Peaks.concat(peaks, new), track=np.r_[peaks.track, new.track + len(tracks)])
+    # A new fit merges into a found one only if their depths agree within their uncertainties, as
+    # at the end (SAME_DEPTH_SIGMAS): the merge distance alone (4 slices) took a blurred particle
+    # found on a brighter one's line of sight, 4.7 sigma behind it, for that one (dev seed 1).
+    both, both_fit = fitter.unique(both, RayFit.concat(fit, new_fit), settled=len(peaks), max_sigmas=SAME_DEPTH_SIGMAS)
+    if len(both) == len(peaks):
+        return None
+    tracks = Tracks(x=np.vstack([tracks.x, new_tracks.x]), y=np.vstack([tracks.y, new_tracks.y]),
+                    brightness=np.vstack([tracks.brightness, new_tracks.brightness]))
+    return both, tracks, both_fit
+
+
+def late_pass(fitter: RayFitter, table: LightFieldTable, background: BackgroundMap, params: PipelineParams,
+              alphas: np.ndarray, limits: tuple[float, float], threshold: float, peaks: Peaks, tracks: Tracks,
+              fit: RayFit, lens_noise: np.ndarray) -> tuple[Peaks, Tracks, RayFit]:
+    """One more detection pass once the particles are deblended, and all deblended again with what
+    it finds. A particle blurred over many pitches among brighter ones often makes no peak of its
+    own in the first passes (a wider sensor blur widens its refocused spot, which merges with its
+    neighbours'), while started at its true place it fits well with the others' light taken off.
+    The deblended fits explain their own light better than the first ones, so the residual shows
+    more of it; the second deblending drops the new fits that prove to be a neighbour's light.
+    What this pass finds must also show a point's pattern within its lenses (:func:`patterned`):
+    the residual of a realistic frame keeps the light of reflections and glints, and without it 2
+    of 8 held-out realistic clouds (seeds 33-41) kept a particle on a reflection. It keeps about
+    half of what the pass gains (tuning seeds 25-32: 35 of 71 particles; :func:`converges`: 12)."""
+    n_tracks = len(tracks)
+    found = look_again(fitter, table, background, params, alphas, limits, threshold, peaks, tracks, fit, lens_noise)
+    if found is None:
+        return peaks, tracks, fit
+    new = np.flatnonzero(found[0].track >= n_tracks)
+    spread = new[~patterned(fitter, found[2].take(new), fitter.render(found[2]))]
+    if spread.size == new.size:  # nothing new left: the fits stand as they were
+        fitter.reject(found[0].take(spread), found[2].take(spread), "extended")
+        return peaks, tracks, fit
+    peaks, tracks, fit = found
+    if spread.size:
+        fitter.reject(peaks.take(spread), fit.take(spread), "extended")
+        keep = np.setdiff1d(np.arange(len(peaks)), spread)
+        peaks, fit = peaks.take(keep), fit.take(keep)
+    peaks, fit = deblend(fitter, peaks, fit)
+    return peaks, tracks, fit
+
+
+def above_noise(fitter: RayFitter, peaks: Peaks, lens_noise: np.ndarray, threshold: float, *,
+                record: bool = True) -> Peaks:
+    """``peaks`` without those that do not stand out from the local noise (recorded as ``noise`` with
+    ``record``); ``lens_noise``: the noise variance ratio of each lens of the fit's table."""
+    low = below_local_noise(peaks, fitter.grid, table_index(fitter.table, fitter.cache).tree, lens_noise, threshold)
+    if record:
+        fitter.reject(peaks.take(low), None, "noise")
+    return peaks.take(~low)
