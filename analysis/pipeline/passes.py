@@ -120,18 +120,15 @@ def late_pass(fitter: RayFitter, table: LightFieldTable, background: BackgroundM
     found = look_again(fitter, table, background, params, alphas, limits, threshold, peaks, tracks, fit, lens_noise)
     if found is None:
         return peaks, tracks, fit
-    new = np.flatnonzero(found[0].track >= n_tracks)
-    spread = new[~patterned(fitter, found[2].take(new), fitter.render(found[2]))]
+    both, both_tracks, both_fit = found
+    new = np.flatnonzero(both.track >= n_tracks)
+    spread = new[~patterned(fitter, both_fit.take(new), fitter.render(both_fit))]
+    fitter.reject(both.take(spread), both_fit.take(spread), "extended")
     if spread.size == new.size:  # nothing new left: the fits stand as they were
-        fitter.reject(found[0].take(spread), found[2].take(spread), "extended")
         return peaks, tracks, fit
-    peaks, tracks, fit = found
-    if spread.size:
-        fitter.reject(peaks.take(spread), fit.take(spread), "extended")
-        keep = np.setdiff1d(np.arange(len(peaks)), spread)
-        peaks, fit = peaks.take(keep), fit.take(keep)
-    peaks, fit = deblend(fitter, peaks, fit)
-    return peaks, tracks, fit
+    keep = np.setdiff1d(np.arange(len(both)), spread)
+    peaks, fit = deblend(fitter, both.take(keep), both_fit.take(keep))
+    return peaks, both_tracks, fit
 
 
 def above_noise(fitter: RayFitter, peaks: Peaks, lens_noise: np.ndarray, threshold: float, *,
