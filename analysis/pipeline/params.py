@@ -67,8 +67,8 @@ class PipelineParams:
         With ``deblend``: once the particles are deblended, one more detection pass with their
         light taken off, and all of them deblended again with what it finds (faint particles
         blurred over many pitches among brighter ones, whose refocused spots merged with theirs).
-        Off by default: on realistic clouds and off-focus balls it finds about 1 % more of the
-        particles, no more false ones, at 1.25-1.36x the time.
+        Off by default: on realistic clouds and off-focus balls not tuned on it finds about 1 %
+        more of the particles (as many false ones in all), at 1.25-1.36x the time.
     depth_prior
         Where a particle's pixels leave its depth open (its light falls in one micro-lens) and its
         neighbours lie on one surface, take the depth that surface predicts as a prior

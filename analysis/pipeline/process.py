@@ -13,8 +13,8 @@ parameter object stored with every result::
               # the raw pixels (analysis.depth.rayfit); hidden particles (probes in front of and
               # behind each); a second pass over the raw image with the found particles' light off
     peaks   = deblend(fitter, peaks, fit)                 # analysis.depth.deblend: neighbours' light off
-    peaks   = deblend(fitter, peaks + late, fit)          # the late pass: one more detection pass on
-              # what the deblended fits leave, all deblended again with it (PipelineParams.late_pass, off)
+    peaks   = late_pass(fitter, ..., peaks, fit)          # analysis.pipeline.passes, off by default: one
+              # more detection pass on what the deblended fits leave, all deblended again with it
     peaks   = apply_depth_prior(fitter, peaks, fit)       # analysis.depth.prior: one-lens particles
     peaks   = refit_blurred(fitter, peaks, fit)           # analysis.depth.deblend: blurred ones again,
               # with every neighbour's light as the stages before left it
