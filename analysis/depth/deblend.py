@@ -17,7 +17,7 @@ from analysis.detection.curves import Peaks
 from analysis.lightfield.table import LightFieldTable
 
 from .quality import converges
-from .rayfit import FitGrid, RayFit, pattern_overlap
+from .rayfit import RENDER_POINTS, FitGrid, RayFit, pattern_overlap, points_per_side
 from .refine import (FINE_GRID, FINE_TEMPERATURE, PROBE_FRACTION, PROBE_GRID, PROBE_HALF_RANGE, PROBE_RESIDUAL,
     SAME_DEPTH_SIGMAS, WIDE_FINE_GRID, WIDE_PROBE_GRID, RayFitter, accept, moved, outshines_misfit, replace_fits)
 
@@ -160,21 +160,29 @@ def refit_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, 
 
 def sharpen_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit]:
     """The strongly blurred particles' last estimate: refitted once more, with every other
-    particle's light taken off, weighing the fine pass's candidates at :data:`SHARP_TEMPERATURE`.
+    particle's light taken off, weighing the fine pass's candidates at :data:`SHARP_TEMPERATURE`,
+    and with as many pixel points as the camera's blur needs to reach every pixel a lens's patch
+    of light spreads to (:func:`analysis.depth.rayfit.points_per_side`).
     Runs after every decision on which fits are particles, so it moves fits and changes none of them."""
     rows = np.flatnonzero(fitter.strongly_blurred(fit.alpha))
-    return _refit_where_acceptable(fitter, peaks, fit, rows, temperature=SHARP_TEMPERATURE)
+    return _refit_where_acceptable(fitter, peaks, fit, rows, temperature=SHARP_TEMPERATURE, wide_pixels=True)
 
 
 def _refit_where_acceptable(fitter: RayFitter, peaks: Peaks, fit: RayFit, rows: np.ndarray, *,
-                            temperature: float = FINE_TEMPERATURE) -> tuple[Peaks, RayFit]:
-    """``rows`` refitted with every other fit's light taken off, where the refit is acceptable."""
+                            temperature: float = FINE_TEMPERATURE, wide_pixels: bool = False) -> tuple[Peaks, RayFit]:
+    """``rows`` refitted with every other fit's light taken off, where the refit is acceptable;
+    with ``wide_pixels``, pixels as :func:`~analysis.depth.rayfit.points_per_side` gives them."""
     if rows.size == 0:
         return peaks, fit
+    fine, wide_fine = FINE_GRID._replace(temperature=temperature), WIDE_FINE_GRID._replace(temperature=temperature)
+    points = RENDER_POINTS
+    if wide_pixels:
+        fine, wide_fine = (g._replace(pixel_points=points_per_side(g.pixel_points, fitter.blur_px))
+                           for g in (fine, wide_fine))
+        points = points_per_side(points, fitter.blur_px)
     sub = fit.take(rows)
-    new = fitter.fit(sub.sx_m, sub.sy_m, sub.alpha, subtract=fitter.render(fit), own=sub, recentre=DEBLEND_RECENTRE,
-                     fine=FINE_GRID._replace(temperature=temperature),
-                     wide_fine=WIDE_FINE_GRID._replace(temperature=temperature))
+    new = fitter.fit(sub.sx_m, sub.sy_m, sub.alpha, subtract=fitter.render(fit, points=points), own=sub,
+                     render_points=points, recentre=DEBLEND_RECENTRE, fine=fine, wide_fine=wide_fine)
     ok = np.flatnonzero(fitter.acceptable(new))
     return replace_fits(fitter.grid, peaks, fit, rows[ok], new.take(ok))
 

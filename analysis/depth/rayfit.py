@@ -20,6 +20,7 @@ brightness blurs away when the blur is under a lens pitch or two.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields, replace
 from typing import Any, Callable, NamedTuple
 
@@ -127,6 +128,9 @@ class FitGrid(NamedTuple):
 #: The ideal optics' point spread (sigma, px; camera-model.md step 4): what the fit models when it is
 #: told no other (a calibration estimates the camera's own from its white image).
 DEFAULT_BLUR_PX = IDEAL_POINT_SPREAD_PX
+#: Footprint points per side of a render (:func:`render_fits`) under the ideal optics' blur
+#: (:func:`points_per_side`).
+RENDER_POINTS = 3
 
 #: The default passes of :func:`fit_rays` (the pipeline's own are in :mod:`analysis.depth.refine`).
 COARSE = FitGrid(depths=33, lateral_pitches=0.4, positions=3, pixel_points=1, temperature=1.0)
@@ -302,8 +306,9 @@ def _sum_per_point(values: np.ndarray, g: Gathered, n: int) -> np.ndarray:
 
 
 def render_fits(table: LightFieldTable, fit: RayFit, *, aperture_per_lens_plane: float, blur_px: float = DEFAULT_BLUR_PX,
-                out: np.ndarray | None = None, cache: Cache | None = None) -> np.ndarray:
-    """The light that fitted particles put on each sample of ``table`` (devignetted DN).
+                out: np.ndarray | None = None, cache: Cache | None = None, points: int = RENDER_POINTS) -> np.ndarray:
+    """The light that fitted particles put on each sample of ``table`` (devignetted DN), each pixel
+    modelled as ``points`` x ``points`` points (:func:`pixel_footprint`).
 
     Returns
     -------
@@ -317,17 +322,17 @@ def render_fits(table: LightFieldTable, fit: RayFit, *, aperture_per_lens_plane:
         return out
     reach = np.abs(1.0 - 1.0 / fit.alpha) * idx.radius_m + 1.8 * idx.pitch_m
     g = idx.gather(fit.sx_m, fit.sy_m, reach)
-    light = _render_gathered(fit, idx, g, idx.uv(g.ids), aperture_per_lens_plane, blur_px)
+    light = _render_gathered(fit, idx, g, idx.uv(g.ids), aperture_per_lens_plane, blur_px, points)
     render_kernels.scatter_add(out, g.ids, light)
     return out
 
 
 def _render_gathered(fit: RayFit, idx: TableIndex, g: Gathered, uv: np.ndarray, aperture_per_lens_plane: float,
-                     blur_px: float) -> np.ndarray:
-    """The light of particle ``p`` on each of its own gathered samples."""
+                     blur_px: float, points: int = RENDER_POINTS) -> np.ndarray:
+    """The light of particle ``p`` on each of its own gathered samples (``points`` x ``points`` per pixel)."""
     out = np.zeros(uv.shape[0])
     render_kernels.render_samples(g.centres, g.sample_ptr, g.lens_ptr, uv, fit.sx_m, fit.sy_m, 1.0 - 1.0 / fit.alpha,
-                        fit.intensity, idx.cells(aperture_per_lens_plane), pixel_footprint(3, blur_px) * idx.u_per_px,
+                        fit.intensity, idx.cells(aperture_per_lens_plane), pixel_footprint(points, blur_px) * idx.u_per_px,
                         out)
     return out
 
@@ -351,6 +356,24 @@ def aperture_per_lens_plane(optics: Any) -> float:
     """``(P + d) / d``: a lens-plane step between lens centres moves their micro-images by this many
     aperture metres (optics of :class:`analysis.camera.model.Optics`)."""
     return optics.aperture_m_per_px * optics.projection_factor / optics.pixel_pitch_m
+
+
+def points_per_side(nominal: int, blur_px: float) -> int:
+    """Footprint points per side for a pixel blurred by ``blur_px``: ``nominal`` (as a
+    :class:`FitGrid` or :data:`RENDER_POINTS` gives it, for the ideal optics' blur) or, for a wider
+    blur, proportionally more (the next odd number), so the points stay as far apart.
+
+    Why: a strongly blurred particle lights a patch of about a pixel in each lens, which the blur
+    spreads over the pixels around it, and points at a few quantiles of the spread miss the pixels
+    farther out: with 3 x 3 points under a 0.8 px blur, 40-54 % of the light of noise-free isolated
+    particles blurred over 10-11 pitches fell on samples the model left dark (25-29 % under the
+    ideal 0.5 px), and their fits came out 20-40 % too faint. The last estimate of strongly blurred
+    particles (:func:`analysis.depth.deblend.sharpen_blurred`) models pixels so.
+    """
+    if nominal <= 1:
+        return nominal
+    width = math.sqrt(1.0 / 12.0 + blur_px ** 2) / math.sqrt(1.0 / 12.0 + DEFAULT_BLUR_PX ** 2)
+    return max(nominal, 2 * round((nominal * width - 1.0) / 2.0) + 1)
 
 
 def pixel_footprint(n_side: int, blur_px: float) -> np.ndarray:
@@ -382,7 +405,8 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
              reach_pitches: float = 1.2, blur_px: float = DEFAULT_BLUR_PX, subtract: np.ndarray | None = None,
              own: RayFit | None = None, prior_alpha: np.ndarray | None = None,
              prior_sigma: np.ndarray | None = None, prior_outlier: float = 0.05, saturation: float = 4095.0,
-             recentre: int = 0, coarse_floor: float = 0.0, cache: Cache | None = None) -> RayFit:
+             recentre: int = 0, coarse_floor: float = 0.0, cache: Cache | None = None,
+             render_points: int = RENDER_POINTS) -> RayFit:
     """Refine position and depth of particles by fitting the forward model to the raw samples.
 
     Two passes (:class:`FitGrid`): a coarse grid of depths over ``alpha0 +- alpha_half_range`` and
@@ -434,6 +458,8 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
         Earlier fits of these same particles (row for row), whose light ``subtract`` includes: each
         particle's own share is added back, so it is refitted to its pixels with only its
         neighbours' light taken off (deblending a crowd).
+    render_points : int
+        Pixel points per side of ``own``'s render: as ``subtract``'s (:func:`render_fits`).
     saturation : float
         Raw value at which the ADC saturates: samples that read it are censored (their true value
         is at least that: they count only where the model predicts less, and do not set the
@@ -479,7 +505,7 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
     if own is not None:
         if len(own) != n:
             raise ValueError(f"own holds {len(own)} fits for {n} particles")
-        values += _render_gathered(own, idx, g, uv, aperture_per_lens_plane, blur_px)
+        values += _render_gathered(own, idx, g, uv, aperture_per_lens_plane, blur_px, render_points)
     c_prior, prior_k = _prior_in_c(n, prior_alpha, prior_sigma)
     # The uniform part's density relative to the Gaussian's peak.
     with np.errstate(divide="ignore"):

@@ -27,7 +27,7 @@ from analysis.detection.curves import Peaks, unique_indices
 from analysis.detection.rejections import Rejections
 from analysis.lightfield.table import LightFieldTable
 
-from .rayfit import DEFAULT_BLUR_PX, FitGrid, RayFit, fit_rays, render_fits, unexplained_light
+from .rayfit import DEFAULT_BLUR_PX, RENDER_POINTS, FitGrid, RayFit, fit_rays, render_fits, unexplained_light
 
 log = logging.getLogger(__name__)
 
@@ -212,13 +212,14 @@ class RayFitter:
             return fits[0] if fits else fit_rays(self.image, self.table, sx, sy, a, fine=fine, **settings)
         return RayFit.concat(*fits).take(np.argsort(np.concatenate(parts)))
 
-    def render(self, fit: RayFit) -> np.ndarray:
-        """The light of fitted particles on each table sample (:func:`analysis.depth.rayfit.render_fits`)."""
+    def render(self, fit: RayFit, *, points: int = RENDER_POINTS) -> np.ndarray:
+        """The light of fitted particles on each table sample (:func:`analysis.depth.rayfit.render_fits`,
+        pixels as ``points`` x ``points`` points)."""
         out = np.zeros(self.table.n_samples, dtype=np.float32)
         for start in range(0, len(fit), FIT_CHUNK):  # in particle order, as one call would add them
             chunk = fit.take(np.arange(start, min(start + FIT_CHUNK, len(fit))))
             render_fits(self.table, chunk, aperture_per_lens_plane=self.aperture_per_lens_plane, out=out,
-                        cache=self.cache, blur_px=self.blur_px)
+                        cache=self.cache, blur_px=self.blur_px, points=points)
         return out
 
     @property
