@@ -21,7 +21,8 @@ parameter object stored with every result::
     peaks   = drop_misfits(drop_extended(...))            # analysis.depth.quality: light that does not
               # converge to a point, and the final table's misfit limit (max_fit_residual)
     peaks   = sharpen_blurred(fitter, peaks, fit)         # analysis.depth.deblend: the blurred ones'
-              # last estimate, weighed more sharply; it moves fits and decides nothing
+              # last estimate, weighed more sharply, pixels modelled as wide as the camera's blur; it moves
+              # fits and decides nothing
     X, Y, Z = to_physical(peaks.x, peaks.y, peaks.alpha, grid, ...)  # analysis.camera.coordinates
 
 Each stage is also callable on its own; :func:`process` runs them all and :func:`process_many`
