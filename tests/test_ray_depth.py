@@ -517,7 +517,7 @@ def test_pixel_points_for_a_wider_blur_keep_the_fitted_light_of_strongly_blurred
     came out 0.78x as bright as under a 0.3 px blur (0.66x at worst), and misfit their light more.
     :func:`points_per_side` gives the last estimate (``sharpen_blurred``) points enough."""
     from analysis.depth.deblend import DEBLEND_RECENTRE
-    from analysis.depth.rayfit import RENDER_POINTS, points_per_side
+    from analysis.depth.rayfit import points_per_side
     from analysis.depth.refine import COARSE_LATERAL_PITCHES, WIDE_FINE_GRID
     from analysis.simulation.camera_effects import CameraEffects
     from analysis.simulation.realism import Realism
@@ -532,8 +532,7 @@ def test_pixel_points_for_a_wider_blur_keep_the_fitted_light_of_strongly_blurred
         fits[blur_px] = fit_rays(image, table, s_hat[:, 0], s_hat[:, 1], 1.0 / (1.0 - c), background=0.0,
                                  blur_px=blur_px, aperture_per_lens_plane=aperture_per_lens_plane(model.optics),
                                  coarse=PIPELINE_COARSE._replace(lateral_pitches=COARSE_LATERAL_PITCHES),
-                                 fine=fine, recentre=DEBLEND_RECENTRE,
-                                 render_points=points_per_side(RENDER_POINTS, blur_px))
+                                 fine=fine, recentre=DEBLEND_RECENTRE)
     brightness = fits[0.8].intensity / fits[0.3].intensity
     assert np.mean(brightness) > 0.84 and np.min(brightness) > 0.75, brightness  # 3 x 3 / 5 x 5: 0.78, 0.66
     assert np.median(fits[0.8].residual) < 0.008, fits[0.8].residual  # 3 x 3 / 5 x 5: 0.0092
