@@ -61,6 +61,16 @@ def wait_for_job(get, job_id: str, *, timeout_s: float = 180.0, states=("done", 
     raise TimeoutError(f"job {job_id} still {job['state']} after {timeout_s} s")
 
 
+def wait_until_ready(get, *, timeout_s: float = 120.0) -> None:
+    """Poll ``GET /readyz`` until it answers 200; a timeout says what it last answered (workers
+    still warming, a data disk below the free-space margin, ...)."""
+    deadline = time.monotonic() + timeout_s
+    while (r := get("/readyz")).status_code != 200:
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"service not ready after {timeout_s} s: /readyz said {r.text}")
+        time.sleep(0.2)
+
+
 def assert_problem(response, status: int) -> dict:
     assert response.status_code == status, response.text
     assert response.headers["content-type"].startswith("application/problem+json")

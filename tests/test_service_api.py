@@ -25,7 +25,7 @@ from driver.simulated import CameraFolder
 from service.app import create_app
 from service.settings import Settings
 from service_helpers import (assert_matches_truth, assert_problem, simulate, truth_xyz, variant_lfp,
-                             wait_for_job)
+                             wait_for_job, wait_until_ready)
 
 KEY = "test-key-123"
 AUTH = {"Authorization": f"Bearer {KEY}"}
@@ -58,10 +58,7 @@ def client(tmp_path_factory, camera_dir, sim):
     camera = open_simulated(camera_dir)
     app = create_app(settings, camera=camera)
     with TestClient(app) as c:
-        deadline = time.monotonic() + 120
-        while c.get("/readyz").status_code != 200:
-            assert time.monotonic() < deadline, "workers never became warm"
-            time.sleep(0.2)
+        wait_until_ready(c.get)
         files = [("files", (p.name, p.read_bytes())) for p in sorted(sim.calibration_dir.iterdir())]
         r = c.post("/api/v1/calibrations", files=files, headers=AUTH)
         assert r.status_code == 201, r.text

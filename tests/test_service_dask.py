@@ -29,7 +29,7 @@ def test_jobs_run_on_a_dask_cluster(tmp_path, cluster) -> None:
     with TestClient(create_app(settings)) as client:
         deadline = time.monotonic() + 120
         while (ready := client.get("/readyz").json())["workers"] != "warm":
-            assert time.monotonic() < deadline
+            assert time.monotonic() < deadline, ready
             time.sleep(0.2)
         assert ready["executor"] == "dask"
         files = [("files", (p.name, p.read_bytes())) for p in sorted(sim.calibration_dir.iterdir())]

@@ -2,22 +2,17 @@
 
 from __future__ import annotations
 
-import time
-
 from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.settings import Settings
-from service_helpers import assert_matches_truth, simulate, truth_xyz, wait_for_job
+from service_helpers import assert_matches_truth, simulate, truth_xyz, wait_for_job, wait_until_ready
 
 
 def test_jobs_waiting_for_white_images_run_when_they_are_uploaded(tmp_path) -> None:
     sim = simulate(tmp_path / "sim", seed=8, count=1)
     with TestClient(create_app(Settings(data_dir=tmp_path / "data"))) as client:
-        deadline = time.monotonic() + 120
-        while client.get("/readyz").status_code != 200:
-            assert time.monotonic() < deadline
-            time.sleep(0.2)
+        wait_until_ready(client.get)
         r = client.post("/api/v1/exposures?run=early", content=sim.lfp[0].read_bytes(),
                         headers={"Content-Type": "application/octet-stream"})
         job = wait_for_job(client.get, r.json()["job_id"])
