@@ -1,4 +1,5 @@
-"""Shared test set-up: a writable numba cache, and paths to the real fixtures."""
+"""Shared test set-up: a writable numba cache, a small free-space margin for the services, and
+paths to the real fixtures."""
 
 from __future__ import annotations
 
@@ -7,6 +8,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".cache" / "numba"))
+# The service keeps 1 GB free on a lab's data disk; the tests' services write a few MB each, and a
+# shared CI disk may have less than 1 GB left (CI failed so: every service "not ready"). The margin
+# itself is tested with its own setting (test_service_first_hour).
+os.environ.setdefault("PLENODUST_MIN_FREE_BYTES", str(100_000_000))
 
 import pytest  # noqa: E402
 
