@@ -745,24 +745,3 @@ def test_a_candidate_faint_in_the_coarse_pass_keeps_its_coarse_fit():
         assert np.array_equal(getattr(screened, name)[~faint], getattr(full, name)[~faint]), name
     assert np.all(screened.intensity[faint] <= floor)
     assert not np.allclose(screened.alpha[faint], full.alpha[faint], rtol=0, atol=1e-7)  # no fine pass
-
-
-
-def test_the_last_estimate_of_strongly_blurred_particles_models_blurred_pixels_in_its_coarse_pass_too():
-    """A fit's coarse pass models a pixel as one point, without the sensor's blur, and starts the
-    fine window off where that matters most: particles blurred over 12-18 pitches under a 0.8 px
-    blur (noise-free) came out of ``sharpen_blurred`` with c 2.5 % off (RMS, median 1.3 % short,
-    up to 4.7 %) when its coarse pass did so; with the fine pass's wider pixels there as well,
-    0.9 % (median 0.5 % short)."""
-    from analysis.depth.deblend import sharpen_blurred
-    from analysis.simulation.camera_effects import CameraEffects
-    from analysis.simulation.realism import Realism
-
-    blur = np.linspace(12.0, 18.0, 16) * np.tile([1.0, -1.0], 8)
-    camera = CameraEffects.build(Realism(blur_px=0.8), serial="A202160042")
-    model, table, s_hat, c, _, image = _isolated_particles(1024, 30.0, blur, camera=camera)
-    fitter, peaks, first = _first_fits(model, table, image, s_hat, 1.0 / (1.0 - c), blur_px=0.8)
-    _, last = sharpen_blurred(fitter, peaks, first)
-    depth = (1.0 - 1.0 / last.alpha) / c - 1.0
-    assert np.sqrt(np.mean(depth ** 2)) < 0.013, depth  # one-point coarse pass: 0.025
-    assert abs(np.median(depth)) < 0.008, depth  # 0.013

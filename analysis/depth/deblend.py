@@ -162,7 +162,7 @@ def sharpen_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks
     """The strongly blurred particles' last estimate: refitted once more, with every other
     particle's light taken off, weighing the fine pass's candidates at :data:`SHARP_TEMPERATURE`,
     and with as many pixel points as the camera's blur needs to reach every pixel a lens's patch
-    of light spreads to (:func:`analysis.depth.rayfit.points_per_side`), in its coarse pass too.
+    of light spreads to (:func:`analysis.depth.rayfit.points_per_side`).
     Runs after every decision on which fits are particles, so it moves fits and changes none of them."""
     rows = np.flatnonzero(fitter.strongly_blurred(fit.alpha))
     return _refit_where_acceptable(fitter, peaks, fit, rows, temperature=SHARP_TEMPERATURE, wide_pixels=True)
@@ -171,26 +171,18 @@ def sharpen_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks
 def _refit_where_acceptable(fitter: RayFitter, peaks: Peaks, fit: RayFit, rows: np.ndarray, *,
                             temperature: float = FINE_TEMPERATURE, wide_pixels: bool = False) -> tuple[Peaks, RayFit]:
     """``rows`` refitted with every other fit's light taken off, where the refit is acceptable;
-    with ``wide_pixels``, pixels as :func:`~analysis.depth.rayfit.points_per_side` gives them, in
-    the coarse pass as in the renders (:data:`~analysis.depth.rayfit.RENDER_POINTS` for the ideal
-    blur) rather than as one point."""
+    with ``wide_pixels``, pixels as :func:`~analysis.depth.rayfit.points_per_side` gives them."""
     if rows.size == 0:
         return peaks, fit
     fine, wide_fine = FINE_GRID._replace(temperature=temperature), WIDE_FINE_GRID._replace(temperature=temperature)
-    coarse = fitter.coarse
     points = RENDER_POINTS
     if wide_pixels:
         fine, wide_fine = (g._replace(pixel_points=points_per_side(g.pixel_points, fitter.blur_px))
                            for g in (fine, wide_fine))
         points = points_per_side(points, fitter.blur_px)
-        # A coarse pass that models a pixel as one point (no blur) starts the fine window off:
-        # noise-free isolated particles blurred over 4-12 pitches under a 0.8 px blur, fitted with
-        # these fine grids, came out 0.7-0.8 % short in c (median) and 0.02-0.03 pitch off
-        # sideways with it; with these points +0.4-0.6 % and under 0.01 pitch.
-        coarse = coarse._replace(pixel_points=points)
     sub = fit.take(rows)
     new = fitter.fit(sub.sx_m, sub.sy_m, sub.alpha, subtract=fitter.render(fit, points=points), own=sub,
-                     render_points=points, recentre=DEBLEND_RECENTRE, coarse=coarse, fine=fine, wide_fine=wide_fine)
+                     render_points=points, recentre=DEBLEND_RECENTRE, fine=fine, wide_fine=wide_fine)
     ok = np.flatnonzero(fitter.acceptable(new))
     return replace_fits(fitter.grid, peaks, fit, rows[ok], new.take(ok))
 
