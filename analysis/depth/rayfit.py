@@ -361,7 +361,8 @@ def aperture_per_lens_plane(optics: Any) -> float:
 def points_per_side(nominal: int, blur_px: float) -> int:
     """Footprint points per side for a pixel blurred by ``blur_px``: ``nominal`` (as a
     :class:`FitGrid` or :data:`RENDER_POINTS` gives it, for the ideal optics' blur) or, for a wider
-    blur, proportionally more (the next odd number), so the points stay as far apart.
+    blur, the odd number nearest ``nominal`` times the blurred pixel's width over the ideal one's
+    (standard deviations), so the points stay about as far apart.
 
     Why: a strongly blurred particle lights a patch of about a pixel in each lens, which the blur
     spreads over the pixels around it, and points at a few quantiles of the spread miss the pixels
