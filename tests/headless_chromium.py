@@ -10,8 +10,10 @@ import base64
 import contextlib
 import itertools
 import json
+import os
 import re
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
@@ -34,13 +36,19 @@ class Browser:
 
     def __init__(self, executable: str, *, width: int = 1500, height: int = 1000, offline: bool = False) -> None:
         self.profile = tempfile.mkdtemp(prefix="plenodust-chromium-")
+        # Its own temporary files (the singleton socket) go in the profile, and it gets a process
+        # group of its own, so that closing it leaves nothing behind in /tmp: its helper processes
+        # outlived a plain terminate and wrote to the profile after it was removed.
+        scratch = os.path.join(self.profile, "tmp")
+        os.mkdir(scratch)
         # offline: no host but loopback resolves, as on a lab network without internet.
         network = ["--host-resolver-rules=MAP * ~NOTFOUND , EXCLUDE 127.0.0.1"] if offline else []
         self.proc = subprocess.Popen(
             [executable, "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
              "--hide-scrollbars", "--no-first-run", "--remote-debugging-port=0", *network,
              f"--user-data-dir={self.profile}", f"--window-size={width},{height}", "about:blank"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env={**os.environ, "TMPDIR": scratch},
+            start_new_session=True)
         port = self._devtools_port(timeout_s=30)
         page = next(t for t in self._json(port, "/json/list") if t["type"] == "page")
         self._stack = contextlib.ExitStack()
@@ -104,15 +112,20 @@ class Browser:
         try:
             self._stack.close()
         finally:
-            self.proc.terminate()
+            self._signal_group(signal.SIGTERM)
             try:
                 self.proc.wait(timeout=10)
             except subprocess.TimeoutExpired:
-                self.proc.kill()
+                self._signal_group(signal.SIGKILL)
                 self.proc.wait()
+            self._signal_group(signal.SIGKILL)  # helpers that outlive the browser itself
             if self.proc.stderr is not None:
                 self.proc.stderr.close()
             shutil.rmtree(self.profile, ignore_errors=True)
+
+    def _signal_group(self, sig: signal.Signals) -> None:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(self.proc.pid, sig)
 
     def __enter__(self) -> Browser:
         return self
