@@ -49,14 +49,18 @@ class Browser:
              f"--user-data-dir={self.profile}", f"--window-size={width},{height}", "about:blank"],
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env={**os.environ, "TMPDIR": scratch},
             start_new_session=True)
-        port = self._devtools_port(timeout_s=30)
-        page = next(t for t in self._json(port, "/json/list") if t["type"] == "page")
         self._stack = contextlib.ExitStack()
-        self.ws = self._stack.enter_context(
-            connect(page["webSocketDebuggerUrl"], max_size=64 * 1024 * 1024, open_timeout=10))
-        self._ids = itertools.count(1)
-        self.call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1,
-                  mobile=False)
+        try:
+            port = self._devtools_port(timeout_s=30)
+            page = next(t for t in self._json(port, "/json/list") if t["type"] == "page")
+            self.ws = self._stack.enter_context(
+                connect(page["webSocketDebuggerUrl"], max_size=64 * 1024 * 1024, open_timeout=10))
+            self._ids = itertools.count(1)
+            self.call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1,
+                      mobile=False)
+        except BaseException:
+            self.close()  # a browser that never answered is not left running
+            raise
 
     def _devtools_port(self, *, timeout_s: float) -> int:
         deadline = time.monotonic() + timeout_s
