@@ -117,12 +117,10 @@ class Browser:
             self._stack.close()
         finally:
             self._signal_group(signal.SIGTERM)
-            try:
+            with contextlib.suppress(subprocess.TimeoutExpired):
                 self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self._signal_group(signal.SIGKILL)
-                self.proc.wait()
-            self._signal_group(signal.SIGKILL)  # helpers that outlive the browser itself
+            self._signal_group(signal.SIGKILL)  # what is left: the browser if it hung, helpers that outlive it
+            self.proc.wait()
             if self.proc.stderr is not None:
                 self.proc.stderr.close()
             shutil.rmtree(self.profile, ignore_errors=True)
