@@ -91,13 +91,13 @@ def test_batch_to_folder_and_hdf5(sim, tmp_path, capsys):
     out = tmp_path / "results"
     code, summary, _ = run_json(capsys, ["process", str(sim / "IMG_0001.lfp"), str(sim / "IMG_0002.lfp"),
                                          "--calibration", str(sim / "calibration"), "--out", str(out),
-                                         "--format", "h5", "--no-cache", "--no-depth-prior", "--late-pass"])
+                                         "--format", "h5", "--no-cache", "--no-depth-prior", "--no-late-pass"])
     assert code == 0
     assert sorted(p.name for p in out.iterdir()) == ["IMG_0001.h5", "IMG_0002.h5"]
     with h5py.File(out / "IMG_0002.h5") as f:
         assert f["entry/data"].attrs["NX_class"] == "NXdata" and f["entry/data/Z"].size > 0
         assert not f["entry/process"].attrs["depth_prior"] and f["entry/process"].attrs["deblend"]
-        assert f["entry/process"].attrs["late_pass"]
+        assert not f["entry/process"].attrs["late_pass"]
 
 
 def test_validate_plane_reads_the_tilt(sim, tmp_path, capsys):

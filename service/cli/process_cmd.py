@@ -103,9 +103,10 @@ def add_pipeline_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--no-depth-prior", action="store_true",
                    help="depth from each particle's own pixels only: no prior from neighbours on one surface "
                         "for particles whose light falls in one micro-lens (their alpha_std stays wide)")
-    g.add_argument("--late-pass", action="store_true",
+    g.add_argument("--late-pass", action=argparse.BooleanOptionalAction, default=d.late_pass,
                    help="one more detection pass after deblending: finds more of the faint particles blurred over "
-                        "many pitches among brighter ones (realistic crowds: about 1 %% more), at 1.25-1.36x the time")
+                        "many pitches among brighter ones (realistic crowds: 1.5-2 %% more), at about 1.3x the time; "
+                        "--no-late-pass for speed")
 
     g = p.add_argument_group("physical coordinates (default: the metadata's thin-lens model)")
     g.add_argument("--metric-calibration", type=Path, default=None, metavar="FILE",
