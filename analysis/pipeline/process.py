@@ -13,7 +13,7 @@ parameter object stored with every result::
               # the raw pixels (analysis.depth.rayfit); hidden particles (probes in front of and
               # behind each); a second pass over the raw image with the found particles' light off
     peaks   = deblend(fitter, peaks, fit)                 # analysis.depth.deblend: neighbours' light off
-    peaks   = late_pass(fitter, ..., peaks, fit)          # analysis.pipeline.passes, off by default: one
+    peaks   = late_pass(fitter, ..., peaks, fit)          # analysis.pipeline.passes (--no-late-pass skips it): one
               # more detection pass on what the deblended fits leave, all deblended again with it
     peaks   = apply_depth_prior(fitter, peaks, fit)       # analysis.depth.prior: one-lens particles
     peaks   = refit_blurred(fitter, peaks, fit)           # analysis.depth.deblend: blurred ones again,
@@ -260,7 +260,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                     release_table_pages(table, cache)  # its residual stack's, as after the passes above
                     trim_heap()
             else:
-                clock.skip("late_pass")  # off by default: progress should not wait for it
+                clock.skip("late_pass")  # turned off: progress should not wait for it
         if params.depth_prior and len(peaks) > 1:
             with clock.stage("depth_prior"):
                 peaks, fit = apply_depth_prior(fitter, peaks, fit)
