@@ -129,6 +129,11 @@ def late_pass(fitter: RayFitter, table: LightFieldTable, background: BackgroundM
     reflection; the pass with it 41 more, with 4 false more (10 of the 2098 found)."""
     n_tracks = len(tracks)
     found = look_again(fitter, table, background, params, alphas, limits, threshold, peaks, tracks, fit, lens_noise)
+    # The residual stack's table pages go before the refits of every particle below, which would
+    # otherwise add their own on top (held-out seed 34's realistic off-focus ball: the worker's
+    # peak, 624 MB, came there).
+    release_table_pages(table, fitter.cache)
+    trim_heap()
     if found is None:
         return peaks, tracks, fit
     both, both_tracks, both_fit = found

@@ -257,8 +257,6 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                 with clock.stage("late_pass"):
                     peaks, tracks, fit = late_pass(fitter, table, background, params, alphas, limits, threshold,
                                                    peaks, tracks, fit, lens_noise)
-                    release_table_pages(table, cache)  # its residual stack's, as after the passes above
-                    trim_heap()
             else:
                 clock.skip("late_pass")  # turned off: progress should not wait for it
         if params.depth_prior and len(peaks) > 1:
