@@ -728,6 +728,28 @@ def test_the_last_estimate_of_blurred_particles_is_sharper():
     assert np.sqrt(np.mean(after ** 2)) < 0.8 * np.sqrt(np.mean(before ** 2)), (before, after)
 
 
+def test_the_last_estimate_of_strongly_blurred_particles_is_unbiased_under_a_wide_blur():
+    """Under a 1.2 px blur (told), a particle blurred over 10-16 pitches lights a sub-pixel patch per
+    lens; the cost rises more slowly toward focus (larger patches) than away from it, and the tempered
+    mean of the candidates' depths left these noise-free particles 3.2 % of their blur nearer focus
+    (RMS 4.4 %). The last estimate takes the vertex of the depth profile's parabola instead (1.0 %,
+    RMS 1.4 %)."""
+    from analysis.depth.deblend import refit_blurred, sharpen_blurred
+    from analysis.simulation.camera_effects import CameraEffects
+    from analysis.simulation.realism import Realism
+
+    camera = CameraEffects.build(Realism(blur_px=1.2), serial="A202160042")
+    blur = np.linspace(10.0, 16.0, 16) * np.tile([1.0, -1.0], 8)
+    model, _, s_hat, c, _, image = _isolated_particles(1600, 36.0, blur, camera=camera)
+    table = build_table_from_model(model, white_coverage(model, camera=camera), rim_px=FIT_TABLE_RIM_PX)
+    fitter, peaks, first = _first_fits(model, table, image, s_hat, 1.0 / (1.0 - c), blur_px=1.2)
+    peaks, refit = refit_blurred(fitter, peaks, first)
+    _, sharp = sharpen_blurred(fitter, peaks, refit)
+    error = (1.0 - 1.0 / sharp.alpha) / c - 1.0  # fitted over true blur, less one
+    assert len(sharp) == blur.size
+    assert abs(np.mean(error)) < 0.016 and np.sqrt(np.mean(error ** 2)) < 0.025, error
+
+
 def test_a_candidate_faint_in_the_coarse_pass_keeps_its_coarse_fit():
     """``coarse_floor``: a candidate whose coarse pass finds no more light than that skips the fine
     pass (it keeps the coarse result, and stays under the floor); the others fit as before."""

@@ -116,6 +116,9 @@ class FitGrid(NamedTuple):
         Cost difference, in mismatched pixels, over which candidates lose weight by ``1/e``: a
         whole one where pixel centres misjudge the partly lit pixels (the coarse pass; sharper,
         it settles on wrong basins), less where pixel areas let them count.
+    vertex : bool
+        The depth from the vertex of a parabola fitted to the depth profile
+        (:func:`analysis.depth.rayfit_kernels.profile_vertex`), not the candidates' tempered mean.
     """
 
     depths: int
@@ -123,6 +126,7 @@ class FitGrid(NamedTuple):
     positions: int
     pixel_points: int
     temperature: float
+    vertex: bool = False
 
 
 #: The ideal optics' point spread (sigma, px; camera-model.md step 4): what the fit models when it is
@@ -526,7 +530,8 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
 
 def _grid_pass(grid: FitGrid, idx: TableIndex, blur_px: float) -> kern.GridPass:
     return kern.GridPass(int(grid.depths), float(grid.lateral_pitches) * idx.pitch_m, int(grid.positions),
-                         pixel_footprint(int(grid.pixel_points), blur_px) * idx.u_per_px, float(grid.temperature))
+                         pixel_footprint(int(grid.pixel_points), blur_px) * idx.u_per_px, float(grid.temperature),
+                         bool(grid.vertex))
 
 
 def _balanced_slots(cost: np.ndarray, n_slots: int) -> tuple[np.ndarray, np.ndarray]:

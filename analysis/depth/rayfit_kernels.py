@@ -41,6 +41,7 @@ class GridPass(NamedTuple):
     n_lateral: int           # ... this many per side
     footprint: np.ndarray    # (n, 2) aperture-metre offsets standing for a pixel's blurred area
     temperature: float       # cost difference (mismatched pixels) over which weights fall by 1/e
+    vertex: bool = False     # depth from the vertex of the depth profile (:func:`profile_vertex`)
 
 
 class PriorTerms(NamedTuple):
@@ -128,10 +129,55 @@ def _fit_one(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, cel
     out[0] = mx / wsum
     out[1] = my / wsum
     out[2] = mc
+    if grid.vertex:
+        out[2] = profile_vertex(costs, best, grid.n_depths, grid.n_lateral ** 2, c_lo, c_hi, scale, mc)
     out[3] = i0
     out[4] = lit[best]
     out[5] = np.sqrt(max(costs[best], 0.0) / max(m, 1)) / i0
     out[6] = np.sqrt(max(mc2 / wsum - mc * mc, 0.0))
+
+
+@numba.njit(cache=True, fastmath=FASTMATH)
+def profile_vertex(costs, best, n_depths, n_pos, c_lo, c_hi, scale, mean_c):
+    """The depth ``c`` at the vertex of a parabola fitted to the depth profile: at each depth, the
+    costs of its ``n_pos`` positions marginalised at the candidates' temperature (``scale``), fitted
+    by least squares weighted as the candidates are; clipped to the window. Where the parabola opens
+    downward, ``mean_c`` (the tempered mean), or at the window's ends the lowest depth.
+
+    Why not the tempered mean: a strongly blurred particle's cost rises more slowly toward focus
+    (larger patches per lens) than away from it, so the mean over a window leans toward focus; on
+    noise-free isolated particles blurred over 10-16 pitches, told a 1.2 px blur, by 2.5-4 % of
+    ``c``. The vertex of the three lowest profile points alone was as unbiased, but noisier: through
+    ideal optics it added a tenth to the off-focus ball's depth error."""
+    base = costs[best]
+    profile = np.empty(n_depths)
+    for ic in range(n_depths):
+        acc = 0.0
+        for q in range(ic * n_pos, (ic + 1) * n_pos):
+            acc += np.exp(-(costs[q] - base) / scale)
+        profile[ic] = -scale * np.log(max(acc, 1e-300))
+    ib = np.argmin(profile)
+    # Weighted least squares of profile - profile[ib] = a x^2 + b x + c0, x in depth steps from ib.
+    m = np.zeros((3, 3))
+    rhs = np.zeros(3)
+    for ic in range(n_depths):
+        w = np.exp(-(profile[ic] - profile[ib]) / scale)
+        x = float(ic - ib)
+        y = profile[ic] - profile[ib]
+        powers = np.array([x * x, x, 1.0])
+        for r in range(3):
+            rhs[r] += w * powers[r] * y
+            for k in range(3):
+                m[r, k] += w * powers[r] * powers[k]
+    step = (c_hi - c_lo) / max(n_depths - 1, 1)
+    if abs(np.linalg.det(m)) < 1e-12 * m[0, 0] * m[1, 1] * m[2, 2]:
+        return mean_c
+    a, b, _ = np.linalg.solve(m, rhs)
+    if a <= 0.0:
+        # At the window's end the lowest depth itself, so that a recentred pass goes on.
+        return c_lo + step * ib if ib == 0 or ib == n_depths - 1 else mean_c
+    x = min(max(-b / (2.0 * a), -float(ib)), float(n_depths - 1 - ib))
+    return c_lo + step * (ib + x)
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
