@@ -15,7 +15,8 @@ from analysis.formats.particle_table import read_csv
 from analysis.pipeline.tables import FIT_TABLE_RIM_PX, get_table
 from analysis.cache import Cache
 from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, pixel_footprint
-from analysis.depth.rayfit_kernels import GridPass, _count_inside, _position_offsets, censored_intensity, grid_costs
+from analysis.depth.candidate_kernels import censored_intensity
+from analysis.depth.rayfit_kernels import GridPass, _count_inside, _position_offsets, grid_costs
 from analysis.depth.render_kernels import lit_fraction
 from analysis.depth.refine import COARSE_TEMPERATURE
 from analysis.depth.table_index import TableIndex

@@ -118,7 +118,7 @@ class FitGrid(NamedTuple):
         it settles on wrong basins), less where pixel areas let them count.
     vertex : bool
         The depth from the vertex of a parabola fitted to the depth profile
-        (:func:`analysis.depth.rayfit_kernels.profile_vertex`), not the candidates' tempered mean.
+        (:func:`analysis.depth.candidate_kernels.profile_vertex`), not the candidates' tempered mean.
     """
 
     depths: int

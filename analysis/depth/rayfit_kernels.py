@@ -15,7 +15,8 @@ import numba
 import numpy as np
 from numba import prange
 
-FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
+from .candidate_kernels import FASTMATH, censored_intensity, profile_vertex
+
 #: A fine pass whose depth lies farther than this fraction of its half-window from the centre is
 #: run again about it (when the caller asks for it: ``recentre``).
 RECENTRE_FRACTION = 0.5
@@ -41,7 +42,7 @@ class GridPass(NamedTuple):
     n_lateral: int           # ... this many per side
     footprint: np.ndarray    # (n, 2) aperture-metre offsets standing for a pixel's blurred area
     temperature: float       # cost difference (mismatched pixels) over which weights fall by 1/e
-    vertex: bool = False     # depth from the vertex of the depth profile (:func:`profile_vertex`)
+    vertex: bool = False     # depth from the vertex of the depth profile (:func:`~analysis.depth.candidate_kernels.profile_vertex`)
 
 
 class PriorTerms(NamedTuple):
@@ -135,49 +136,6 @@ def _fit_one(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, cel
     out[4] = lit[best]
     out[5] = np.sqrt(max(costs[best], 0.0) / max(m, 1)) / i0
     out[6] = np.sqrt(max(mc2 / wsum - mc * mc, 0.0))
-
-
-@numba.njit(cache=True, fastmath=FASTMATH)
-def profile_vertex(costs, best, n_depths, n_pos, c_lo, c_hi, scale, mean_c):
-    """The depth ``c`` at the vertex of a parabola fitted to the depth profile: at each depth, the
-    costs of its ``n_pos`` positions marginalised at the candidates' temperature (``scale``), fitted
-    by least squares weighted as the candidates are; clipped to the window. Where the parabola opens
-    downward, ``mean_c`` (the tempered mean), or at the window's ends the lowest depth.
-
-    Why not the tempered mean: a strongly blurred particle's cost rises more slowly toward focus
-    (larger patches per lens) than away from it, so the mean over a window leans toward focus; on
-    noise-free isolated particles blurred over 10-16 pitches, told a 1.2 px blur, by 2.5-4 % of
-    ``c``. The vertex of the three lowest profile points alone was as unbiased, but noisier: through
-    ideal optics it added a tenth to the off-focus ball's depth error."""
-    base = costs[best]
-    profile = np.empty(n_depths)
-    for ic in range(n_depths):
-        acc = 0.0
-        for q in range(ic * n_pos, (ic + 1) * n_pos):
-            acc += np.exp(-(costs[q] - base) / scale)
-        profile[ic] = -scale * np.log(max(acc, 1e-300))
-    ib = np.argmin(profile)
-    # Weighted least squares of profile - profile[ib] = a x^2 + b x + c0, x in depth steps from ib.
-    m = np.zeros((3, 3))
-    rhs = np.zeros(3)
-    for ic in range(n_depths):
-        w = np.exp(-(profile[ic] - profile[ib]) / scale)
-        x = float(ic - ib)
-        y = profile[ic] - profile[ib]
-        powers = np.array([x * x, x, 1.0])
-        for r in range(3):
-            rhs[r] += w * powers[r] * y
-            for k in range(3):
-                m[r, k] += w * powers[r] * powers[k]
-    step = (c_hi - c_lo) / max(n_depths - 1, 1)
-    if abs(np.linalg.det(m)) < 1e-12 * m[0, 0] * m[1, 1] * m[2, 2]:
-        return mean_c
-    a, b, _ = np.linalg.solve(m, rhs)
-    if a <= 0.0:
-        # At the window's end the lowest depth itself, so that a recentred pass goes on.
-        return c_lo + step * ib if ib == 0 or ib == n_depths - 1 else mean_c
-    x = min(max(-b / (2.0 * a), -float(ib)), float(n_depths - 1 - ib))
-    return c_lo + step * (ib + x)
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
@@ -581,39 +539,3 @@ def _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, lat_t, cnt, open_pts):
         for q in range(n_pos):
             cnt[q] += 1.0 if (abs(b0 + d0[q]) <= h0) & (abs(b1 + d1[q]) <= h1) & (abs(b2 + d2[q]) <= h2) else 0.0
     return n_in > 0.0 or n_open > 0
-
-
-@numba.njit(cache=True, fastmath=FASTMATH)
-def censored_intensity(s_vf, s_ff, sum_v2, cens_v, cens_f, walked):
-    """A candidate's cost and intensity with the censored samples as lower bounds: the intensity
-    that minimises the others' squared misfit plus ``max(0, v_c - I f_c)^2`` for each bound the
-    prediction falls short of, and that cost. The cost is convex and quadratic between the
-    bounds' break points ``v_c / f_c``; walking them down from the top finds its minimum
-    (``walked``: a work array as long as ``cens_v``).
-    (Raising the intensity to the highest break point instead lets a candidate that lights dark
-    samples fully and a saturated one slightly take an intensity of tens of thousands: a ghost
-    whose relative misfit looks small and whose light then hides the saturated particle.)"""
-    for c in range(cens_v.size):
-        walked[c] = not (cens_f[c] > 0.0 and cens_v[c] > 0.0)
-    a = s_ff
-    b = s_vf
-    inten = max(b / a, 0.0) if a > 0.0 else 0.0
-    while True:
-        top = -1
-        upper = -1.0
-        for c in range(cens_v.size):  # the highest break point not walked past (few: no sort)
-            if not walked[c] and cens_v[c] / cens_f[c] > upper:
-                upper = cens_v[c] / cens_f[c]
-                top = c
-        if top < 0 or (a > 0.0 and inten >= upper):
-            break  # the minimum lies above this break point: its bound is met
-        walked[top] = True
-        a += cens_f[top] * cens_f[top]
-        b += cens_f[top] * cens_v[top]
-        inten = min(max(b / a, 0.0), upper)
-    cost = sum_v2 - 2.0 * inten * s_vf + inten * inten * s_ff
-    for c in range(cens_v.size):
-        short = cens_v[c] - inten * cens_f[c]
-        if short > 0.0:
-            cost += short * short
-    return cost, inten

@@ -10,7 +10,7 @@ import numba
 import numpy as np
 from numba import prange
 
-from .rayfit_kernels import FASTMATH
+from .candidate_kernels import FASTMATH
 
 
 @numba.njit(cache=True, parallel=True)
