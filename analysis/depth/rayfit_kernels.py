@@ -42,7 +42,7 @@ class GridPass(NamedTuple):
     n_lateral: int           # ... this many per side
     footprint: np.ndarray    # (n, 2) aperture-metre offsets standing for a pixel's blurred area
     temperature: float       # cost difference (mismatched pixels) over which weights fall by 1/e
-    vertex: bool = False     # depth from the vertex of the depth profile (:func:`~analysis.depth.candidate_kernels.profile_vertex`)
+    vertex: bool = False     # depth from the depth profile's vertex (candidate_kernels.profile_vertex)
 
 
 class PriorTerms(NamedTuple):
