@@ -45,17 +45,6 @@ LINE_OF_SIGHT_PITCHES = 1.0
 #: dropped, 0.15); the two false ones they kept, 0.49 (on a reflection, 0.0018 in alpha in front
 #: of a particle 5.8 times brighter) and 0.53.
 SAME_PATTERN = 0.3
-#: The last estimate of a strongly blurred particle (:func:`sharpen_blurred`) weighs the fine pass's
-#: candidates at this temperature, not :data:`analysis.depth.refine.FINE_TEMPERATURE` (0.25): where
-#: the cost is flat, the tempered mean over a window centred on the earlier estimate stays near that
-#: centre. Chosen on seeds 25-32 (40 exposures, all effects; 24 through ideal optics): depth error
-#: of the off-focus ball 0.86x, the cloud 0.93x, ideal optics 0.97x, other scenes 0.99-1.03x; 0.1
-#: did better on the realistic ball (0.82x) but worse under an untold 0.3 px blur (1.6x, 0.15: 1.3x,
-#: still under the 0.5 px case's error). Deciding nothing, it cannot add false particles: the
-#: partner tests, run on fits at this temperature, kept 4-5 more ghosts on 80 exposures. (Chosen
-#: with the depth as that mean; the depth now comes from the vertex of the depth profile's parabola,
-#: whose points and weights this temperature still sets, as it sets the positions.)
-SHARP_TEMPERATURE = 0.15
 #: A faint partner blurred less than a pitch, with less evidence than a probe needs, is a particle
 #: only if the pair explains the pixels this many times better than its brighter partner alone. On
 #: the realistic shadowing and layer scenes of seeds 1-8, 11-12, such real partners did 1.34-2.9
@@ -162,27 +151,29 @@ def refit_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, 
 
 def sharpen_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit]:
     """The strongly blurred particles' last estimate: refitted once more, with every other
-    particle's light taken off, weighing the fine pass's candidates at :data:`SHARP_TEMPERATURE`,
-    with as many pixel points as the camera's blur needs to reach every pixel a lens's patch
+    particle's light taken off, with as many pixel points as the camera's blur needs to reach every pixel a lens's patch
     of light spreads to (:func:`analysis.depth.rayfit.points_per_side`), and the depth at the
     vertex of the depth profile's parabola, not the candidates' mean (``FitGrid.vertex``): on
     tuning seeds 27-30 the off-focus ball's realistic depth error 5.3 -> 4.4 % (all effects),
     through ideal optics 3.44 -> 3.42 %; the clouds and shadowing pairs of seeds 27-28 no worse.
-    Runs after every decision on which fits are particles, so it moves fits and changes none of them."""
+    Its candidates are weighed at the fine pass's temperature: a sharper one (0.15) served the
+    candidates' mean, which a flat cost kept near the window's centre; with the vertex it made no
+    difference on realistic frames (tuning seeds 27-30, held-out 33-34: off-focus balls and clouds,
+    all effects, 0.99-1.01x) and cost 2-3 % through ideal optics (under an untold 0.3 px blur it
+    did 1.3 % better). Runs after every decision on which fits are particles, so it moves fits and
+    changes none of them."""
     rows = np.flatnonzero(fitter.strongly_blurred(fit.alpha))
-    return _refit_where_acceptable(fitter, peaks, fit, rows, temperature=SHARP_TEMPERATURE, wide_pixels=True,
-                                   vertex=True)
+    return _refit_where_acceptable(fitter, peaks, fit, rows, wide_pixels=True, vertex=True)
 
 
 def _refit_where_acceptable(fitter: RayFitter, peaks: Peaks, fit: RayFit, rows: np.ndarray, *,
-                            temperature: float = FINE_TEMPERATURE, wide_pixels: bool = False,
-                            vertex: bool = False) -> tuple[Peaks, RayFit]:
+                            wide_pixels: bool = False, vertex: bool = False) -> tuple[Peaks, RayFit]:
     """``rows`` refitted with every other fit's light taken off, where the refit is acceptable;
     with ``wide_pixels``, pixels as :func:`~analysis.depth.rayfit.points_per_side` gives them; with
     ``vertex``, depths from the depth profile's vertex (:class:`~analysis.depth.rayfit.FitGrid`)."""
     if rows.size == 0:
         return peaks, fit
-    fine, wide_fine = (g._replace(temperature=temperature, vertex=vertex) for g in (FINE_GRID, WIDE_FINE_GRID))
+    fine, wide_fine = (g._replace(vertex=vertex) for g in (FINE_GRID, WIDE_FINE_GRID))
     points = RENDER_POINTS
     if wide_pixels:
         fine, wide_fine = (g._replace(pixel_points=points_per_side(g.pixel_points, fitter.blur_px))
