@@ -66,8 +66,12 @@ def look_again(fitter: RayFitter, table: LightFieldTable, background: Background
     rstack = refocus_stack(None, table, alphas, grid=fitter.grid, samples=rs, cache=fitter.cache)
     rsub = subaperture_image(None, table, fraction=params.aperture_fraction, blur_sigma_px=params.blur_sigma_px,
                              grid=fitter.grid, samples=rs, cache=fitter.cache)
+    del rs
+    # Nor are the refocus table's pages, while the stack's peaks and maxima are found and the new
+    # candidates fitted (held-out seed 34's realistic off-focus ball: 583-592 -> 482-492 MB there).
+    release_table_pages(table, fitter.cache)
     new, new_tracks = locate(products(rstack, rsub, out=rstack), alphas, params, threshold=threshold)
-    del rs, rstack, rsub  # not needed by the fits below (an F01's: 40 MB and more)
+    del rstack, rsub  # not needed by the fits below (an F01's: 40 MB and more)
     # Where no found particle's light reaches, the residual is the raw image: its candidates are the
     # earlier pass's, already fitted and judged, and would be judged alike (realistic off-focus ball,
     # seed 1: 113 of 510, most on reflections and glints; 8 frames' results the same without them).
@@ -129,11 +133,7 @@ def late_pass(fitter: RayFitter, table: LightFieldTable, background: BackgroundM
     reflection; the pass with it 41 more, with 4 false more (10 of the 2098 found)."""
     n_tracks = len(tracks)
     found = look_again(fitter, table, background, params, alphas, limits, threshold, peaks, tracks, fit, lens_noise)
-    # The residual stack's table pages go before the refits of every particle below, which would
-    # otherwise add their own on top (held-out seed 34's realistic off-focus ball: the worker's
-    # peak, 624 MB, came there).
-    release_table_pages(table, fitter.cache)
-    trim_heap()
+    trim_heap()  # the residual stack, before the refits of every particle below
     if found is None:
         return peaks, tracks, fit
     both, both_tracks, both_fit = found

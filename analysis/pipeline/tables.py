@@ -92,17 +92,16 @@ def save_normalisations(table: LightFieldTable, calibration: Calibration, cache:
             _mapped_again(table, path, cache)  # the new normalisations too
 
 
-def release_table_pages(table: LightFieldTable, cache: Cache, *, columns: bool = True) -> None:
-    """Give back the pages of the refocus normalisations ``cache`` holds for ``table`` (if any) and,
-    with ``columns``, of the table's per-sample columns, where they are mapped from the disk cache
+def release_table_pages(table: LightFieldTable, cache: Cache) -> None:
+    """Give back the pages of the table's per-sample columns and of the refocus normalisations
+    ``cache`` holds for it, where they are mapped from the disk cache
     (:func:`analysis.lightfield.table.load_table`): read back from the file cache if used again.
 
     Between the refocus stages and the depth fits, which read the raw image through the fit's own
     table: an F01's refocus table and the ~90 normalisations of a survey and a fine stack hold 95 MB;
     and the fit table's pages while a later detection pass refocuses."""
-    if columns:
-        for column in (table.pixel_index, table.lens, table.u_m, table.v_m, table.weight):
-            release_pages(column)
+    for column in (table.pixel_index, table.lens, table.u_m, table.v_m, table.weight):
+        release_pages(column)
     for _, value in cache.entries(NORMALISATION, table.uid):
         release_pages(value)
 
