@@ -67,7 +67,7 @@ def look_again(fitter: RayFitter, table: LightFieldTable, background: Background
     rsub = subaperture_image(None, table, fraction=params.aperture_fraction, blur_sigma_px=params.blur_sigma_px,
                              grid=fitter.grid, samples=rs, cache=fitter.cache)
     del rs
-    # Nor are the refocus table's pages, while the stack's peaks and maxima are found and the new
+    # The refocus table's pages go back too, while the stack's peaks and maxima are found and the new
     # candidates fitted (held-out seed 34's realistic off-focus ball: 583-592 -> 482-492 MB there).
     release_table_pages(table, fitter.cache)
     new, new_tracks = locate(products(rstack, rsub, out=rstack), alphas, params, threshold=threshold)
