@@ -153,9 +153,10 @@ def sharpen_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks
     """The strongly blurred particles' last estimate: refitted once more, with every other
     particle's light taken off, with as many pixel points as the camera's blur needs to reach
     every pixel a lens's patch of light spreads to (:func:`analysis.depth.rayfit.points_per_side`),
-    and the depth at the vertex of the depth profile's parabola, not the candidates' mean (``FitGrid.vertex``): on
-    tuning seeds 27-30 the off-focus ball's realistic depth error 5.3 -> 4.4 % (all effects),
-    through ideal optics 3.44 -> 3.42 %; the clouds and shadowing pairs of seeds 27-28 no worse.
+    and the depth at the vertex of the depth profile's parabola, not the candidates' mean
+    (``FitGrid.vertex``): on tuning seeds 27-30 the off-focus ball's realistic depth error 5.3 ->
+    4.4 % (all effects), through ideal optics 3.44 -> 3.42 %; the clouds and shadowing pairs of
+    seeds 27-28 no worse.
     Its candidates are weighed at the fine pass's temperature: a sharper one (0.15) served the
     candidates' mean, which a flat cost kept near the window's centre; with the vertex it made no
     difference on realistic frames (tuning seeds 27-30, held-out 33-34: off-focus balls and clouds,
