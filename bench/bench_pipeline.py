@@ -37,7 +37,7 @@ os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".cache" / "numba"))
 import numpy as np  # noqa: E402
 from _common import check_free_disk, work_folder  # noqa: E402
 
-from analysis.simulation.scoring import BLUR_BINS, Score, depth_floor, score  # noqa: E402
+from analysis.simulation.scoring import BLUR_BINS, Score, blur_bin_label, depth_floor, score  # noqa: E402
 from analysis.cache import Cache  # noqa: E402
 from analysis.calibration.cache import load_calibration  # noqa: E402
 from analysis.formats.exposure import read_exposure  # noqa: E402
@@ -233,7 +233,7 @@ def main() -> int:
                             + ("met" if not missed else f"MISSED on {missed} of {len(values)}"))
         print(f"  {scenario:13s} " + "; ".join(verdicts))
 
-    labels = [f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">{lo:g}" for lo, hi in BLUR_BINS]
+    labels = [blur_bin_label(lo, hi) for lo, hi in BLUR_BINS]
     print("\nabsolute depth RMS (% NN) by defocus blur (lens pitches), particles in bin in brackets")
     print(f"{'scenario':13s} " + " ".join(f"{lab:>14s}" for lab in labels))
     for scenario in args.scenarios:

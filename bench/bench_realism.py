@@ -9,7 +9,9 @@ process it as the pipeline is (calibration cached, after a warm-up, in a fresh p
 recall, precision, depth error (linear fit and absolute) and lateral error in % of the mean 3D
 nearest-neighbour distance, the depth error over the ideal case's, the Cramér-Rao bound of depth
 (what the pixels of an isolated particle allow, :mod:`analysis.simulation.bound`), false particles
-on a reflection, time per exposure and peak memory. Today's pipeline is told none of the effects.
+on a reflection, time per exposure and peak memory; then the recall by the particles' blur diameter
+(each seed draws where its cluster lies, and so how many are strongly blurred). Today's pipeline
+is told none of the effects.
 
 Usage::
 
@@ -42,7 +44,7 @@ from analysis.formats.particle_table import read_csv  # noqa: E402
 from analysis.simulation.bound import position_bound  # noqa: E402
 from analysis.simulation.chamber import ChamberLight  # noqa: E402
 from analysis.simulation.realism import EFFECTS, IDEAL_BLUR_PX  # noqa: E402
-from analysis.simulation.scoring import false_on_reflection  # noqa: E402
+from analysis.simulation.scoring import RECALL_BLUR_BINS, blur_bin_label, false_on_reflection  # noqa: E402
 
 @dataclass(frozen=True)
 class Scene:
@@ -176,9 +178,30 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
                   f"| {span([r['wall_s'] for r in rs], 1.0, 2):>9s} "
                   f"| {max(r['peak_rss_mb'] for r in rs):7.0f} |")
         print()
+        recall_by_blur(mine, cases)
     print("cases: ideal = the ideal camera; each effect alone at the typical F01's value (Realism.typical(), "
           "plenodust simulate --realism EFFECT); all = every effect (plenodust simulate --realism). 'scene' and "
           "'all' draw the clusters' geometry afresh (the same for both): 'scene' is the ideal-optics reference of 'all'.")
+
+
+def recall_by_blur(rows: list[dict], cases: list[str]) -> None:
+    """Per case, recall by the particles' blur diameter (:data:`RECALL_BLUR_BINS`), pooled over seeds:
+    each seed draws where its cluster lies, and with it how many particles are strongly blurred."""
+    labels = [blur_bin_label(lo, hi) for lo, hi in RECALL_BLUR_BINS]
+    print("recall (%) by blur diameter in lens pitches, pooled over seeds (true particles in brackets)")
+    print(f"| {'case':12s} | " + " | ".join(f"{lab:>13s}" for lab in labels) + " |")
+    print(f"|{'-' * 14}|" + "|".join("-" * 15 for _ in labels) + "|")
+    for case in cases:
+        rs = [r for r in rows if r["case"] == case]
+        if not rs:
+            continue
+        cells = []
+        for lab in labels:
+            true = sum(r["score"].recall_by_blur.get(lab, (0, 0))[0] for r in rs)
+            matched = sum(r["score"].recall_by_blur.get(lab, (0, 0))[1] for r in rs)
+            cells.append(f"{100 * matched / true:6.1f} ({true:4d})" if true else f"{'-':>13s}")
+        print(f"| {case:12s} | " + " | ".join(cells) + " |")
+    print()
 
 
 def main() -> int:

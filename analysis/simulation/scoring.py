@@ -24,6 +24,16 @@ from .scenarios import Particles
 
 #: Defocus bins (blur diameter in lens pitches) for the depth error breakdown.
 BLUR_BINS: tuple[tuple[float, float], ...] = ((0.0, 0.5), (0.5, 1.0), (1.0, 2.0), (2.0, math.inf))
+#: Defocus bins (blur diameter in lens pitches) for the recall breakdown. Off focus, how far a
+#: particle's light spreads decides whether it is found, and where a cluster lies (each realistic
+#: seed draws it) sets how many particles are so blurred: recall per bin compares versions across
+#: seeds whose totals the draw dominates.
+RECALL_BLUR_BINS: tuple[tuple[float, float], ...] = ((0.0, 4.0), (4.0, 8.0), (8.0, 12.0), (12.0, math.inf))
+
+
+def blur_bin_label(lo: float, hi: float) -> str:
+    """The label of the blur bin ``[lo, hi)``: ``"lo-hi"``, or ``">lo"`` for an open one."""
+    return f"{lo:g}-{hi:g}" if math.isfinite(hi) else f">{lo:g}"
 
 
 @dataclass
@@ -31,7 +41,8 @@ class Score:
     """Accuracy of one exposure's particle table against its truth.
 
     All ``*_over_nn`` values are fractions of ``nn_mm`` (multiply by 100 for %).
-    ``depth_by_blur`` maps a bin label to ``(count, absolute depth RMS over NN)``.
+    ``depth_by_blur`` maps a bin label (:data:`BLUR_BINS`) to ``(count, absolute depth RMS over NN)``,
+    ``recall_by_blur`` one (:data:`RECALL_BLUR_BINS`) to ``(true particles, matched ones)``.
     ``pairs_separated`` counts shadowing pairs (true particles closer laterally than
     ``pair_lateral_mm``) whose two members both matched.
     """
@@ -46,6 +57,7 @@ class Score:
     depth_abs_rms_over_nn: float
     lateral_rms_over_nn: float
     depth_by_blur: dict[str, tuple[int, float]] = field(default_factory=dict)
+    recall_by_blur: dict[str, tuple[int, int]] = field(default_factory=dict)
     pairs_total: int = 0
     pairs_separated: int = 0
 
@@ -244,12 +256,18 @@ def score(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], *, n
     else:
         fit_rms = math.nan
     by_blur: dict[str, tuple[int, float]] = {}
-    if "blur_pitches" in truth and m:
-        blur = np.asarray(truth["blur_pitches"], float)[cols]
-        for lo, hi in BLUR_BINS:
-            sel = (blur >= lo) & (blur < hi)
-            label = f"{lo:g}-{hi:g}" if math.isfinite(hi) else f">{lo:g}"
-            by_blur[label] = (int(sel.sum()), float(np.sqrt(np.mean(dz[sel] ** 2)) / nn) if sel.any() else math.nan)
+    recall_by_blur: dict[str, tuple[int, int]] = {}
+    if "blur_pitches" in truth:
+        blur_true = np.asarray(truth["blur_pitches"], float)
+        blur = blur_true[cols]  # of the matched ones
+        if m:
+            for lo, hi in BLUR_BINS:
+                sel = (blur >= lo) & (blur < hi)
+                by_blur[blur_bin_label(lo, hi)] = (int(sel.sum()), float(np.sqrt(np.mean(dz[sel] ** 2)) / nn)
+                                                   if sel.any() else math.nan)
+        for lo, hi in RECALL_BLUR_BINS:
+            recall_by_blur[blur_bin_label(lo, hi)] = (int(np.sum((blur_true >= lo) & (blur_true < hi))),
+                                                      int(np.sum((blur >= lo) & (blur < hi))))
     # Shadowing pairs: true particles nearly on one line of sight.
     pairs = cKDTree(np.column_stack([tx, ty])).query_pairs(pair_lateral * nn) if n_true > 1 else set()
     matched = set(cols.tolist())
@@ -259,7 +277,8 @@ def score(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], *, n
                  nn_mm=nn, depth_fit_rms_over_nn=fit_rms / nn,
                  depth_abs_rms_over_nn=float(np.sqrt(np.mean(dz**2))) / nn if m else math.nan,
                  lateral_rms_over_nn=float(np.sqrt(np.mean(lateral**2))) / nn if m else math.nan,
-                 depth_by_blur=by_blur, pairs_total=len(pairs), pairs_separated=separated)
+                 depth_by_blur=by_blur, recall_by_blur=recall_by_blur, pairs_total=len(pairs),
+                 pairs_separated=separated)
 
 
 def false_on_reflection(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], chamber: ChamberLight,
