@@ -8,7 +8,8 @@ from analysis.simulation.scoring import RECALL_BLUR_BINS, blur_bin_label, score
 
 
 def _truth() -> dict[str, np.ndarray]:
-    """Ten particles 1 mm apart on a slanted line, blurred over 1, 3, 5, 7, 9, 10, 11, 13, 15 and 20 pitches."""
+    """Ten particles 1 mm apart on a slanted line, blurred over 1, 3, 5, 7, 9, 10, 11, 13, 15 and 20
+    pitches."""
     x = np.arange(10, dtype=float)
     return {"X": x, "Y": np.zeros(10), "Z": 50.0 + 0.3 * x,
             "blur_pitches": np.array([1.0, 3.0, 5.0, 7.0, 9.0, 10.0, 11.0, 13.0, 15.0, 20.0])}
@@ -24,7 +25,7 @@ def test_recall_by_blur_counts_each_bins_true_and_matched_particles():
     assert (s.n_true, s.n_found, s.n_matched) == (10, 6, 5)
     labels = [blur_bin_label(lo, hi) for lo, hi in RECALL_BLUR_BINS]
     assert labels == ["0-4", "4-8", "8-12", ">12"]
-    # Bins: [1, 3] -> 0 found of those; [5, 7]; [9, 10, 11]; [13, 15, 20].
+    # Blurs per bin: [1*, 3], [5*, 7*], [9, 10*, 11], [13, 15, 20*] (* found).
     assert s.recall_by_blur == {"0-4": (2, 1), "4-8": (2, 2), "8-12": (3, 1), ">12": (3, 1)}
     assert sum(t for t, _ in s.recall_by_blur.values()) == s.n_true
     assert sum(m for _, m in s.recall_by_blur.values()) == s.n_matched
