@@ -14,7 +14,7 @@ from analysis.lightfield.table import build_table_from_model
 from analysis.formats.particle_table import read_csv
 from analysis.pipeline.tables import FIT_TABLE_RIM_PX, get_table
 from analysis.cache import Cache
-from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, pixel_footprint
+from analysis.depth.rayfit import FitGrid, RayFit, SampleNoise, aperture_per_lens_plane, fit_rays, pixel_footprint
 from analysis.depth.candidate_kernels import censored_intensity
 from analysis.depth.rayfit_kernels import GridPass, _count_inside, _position_offsets, grid_costs
 from analysis.depth.render_kernels import lit_fraction
@@ -178,7 +178,8 @@ def test_refit_with_neighbours_light_taken_off_keeps_isolated_particles(scene):
     assert np.median(gone.intensity) < 0.3 * np.median(first.intensity)
 
 
-def _reference_costs(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, cells):
+def _reference_costs(centres, ptr, uv, values, root_w, censored, sx0, sy0, c_lo, c_hi, grid, cells):
+    # Weighted least squares: values come multiplied by root_w, as the kernel takes them.
     n_c, half_lat, n_lat, sub = grid.n_depths, grid.half_lateral, grid.n_lateral, grid.footprint
     pitch, r_ap2 = cells.pitch, cells.r_ap2
     costs = []
@@ -197,8 +198,8 @@ def _reference_costs(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, g
                     for j in range(ptr[lens], ptr[lens + 1]):
                         f = lit_fraction(uv[j, 0], uv[j, 1], centres[lens, 0], centres[lens, 1], sx, sy, c, cells, sub)
                         if f > 0.0:
-                            s_vf += values[j] * f
-                            s_ff += f * f
+                            s_vf += values[j] * f * root_w[j]
+                            s_ff += (f * root_w[j]) ** 2
                 costs.append(sum_v2 - s_vf * s_vf / s_ff if s_ff > 0 and s_vf > 0 else sum_v2)
     return np.array(costs)
 
@@ -224,9 +225,12 @@ def test_grid_costs_match_the_model_one_candidate_at_a_time(blur, points):
     values = (flat[table.pixel_index[g.ids]].astype(np.float64) - table.black_level) / idx.weight(g.ids)
     values -= np.median(values)  # the background: most gathered samples see none of the particle
     uv = idx.uv(g.ids)
+    # Samples weighted unevenly (here by their white weight, as a read-noise-limited fit would).
+    root_w = idx.weight(g.ids)
+    values *= root_w
     grid = GridPass(4, 0.3 * idx.pitch_m, 3, pixel_footprint(points, 0.5) * idx.u_per_px, 1.0)
-    args = (g.centres, g.sample_ptr, uv, values, np.zeros(values.size, np.bool_), sx0, sy0, c_lo, c_hi, grid,
-            idx.cells(aperture_per_lens_plane(optics)))
+    args = (g.centres, g.sample_ptr, uv, values, root_w, np.zeros(values.size, np.bool_), sx0, sy0, c_lo, c_hi,
+            grid, idx.cells(aperture_per_lens_plane(optics)))
     n = 4 * 3 * 3
     _, costs, _, _, _ = grid_costs(*args)
     assert costs.size == n
@@ -237,6 +241,12 @@ def test_grid_costs_match_the_model_one_candidate_at_a_time(blur, points):
     assert np.sum(expected < sum_v2) >= n // 2 and expected.min() < 0.5 * sum_v2
     assert np.unique(expected).size >= n // 2
     np.testing.assert_allclose(costs, expected, rtol=1e-12, atol=1e-12 * sum_v2)
+    # Unweighted (an empty root_w): every sample counts once.
+    plain = (*args[:3], values / root_w, np.empty(0), *args[5:])
+    _, costs, _, _, _ = grid_costs(*plain)
+    expected = _reference_costs(*plain[:4], np.ones(values.size), *plain[5:])
+    assert not np.allclose(costs, _reference_costs(*args))
+    np.testing.assert_allclose(costs, expected, rtol=1e-12, atol=1e-12 * float(np.sum(plain[3] ** 2)))
 
 
 def test_point_counts_skip_only_points_settled_at_every_position():
@@ -768,3 +778,40 @@ def test_a_candidate_faint_in_the_coarse_pass_keeps_its_coarse_fit():
         assert np.array_equal(getattr(screened, name)[~faint], getattr(full, name)[~faint]), name
     assert np.all(screened.intensity[faint] <= floor)
     assert not np.allclose(screened.alpha[faint], full.alpha[faint], rtol=0, atol=1e-7)  # no fine pass
+
+
+def test_sample_weights_follow_the_noise_of_devignetted_samples():
+    """A devignetted sample's noise is its raw noise over its white weight w: with read noise alone
+    its weight grows as w^2, with shot noise of the light behind it as w / level; a full-weight
+    sample at the typical level counts once, and without a noise model all count alike."""
+    w = np.array([1.0, 0.5, 0.1, 1.0])
+    level = np.array([40.0, 40.0, 40.0, 160.0])
+    read = SampleNoise(read=4.0, shot=0.0, typical_level=40.0).root_weights(w, level)
+    np.testing.assert_allclose(read**2, w**2)
+    shot = SampleNoise(read=0.0, shot=0.7, typical_level=40.0).root_weights(w, level)
+    np.testing.assert_allclose(shot**2, w * 40.0 / level)
+    both = SampleNoise(read=4.0, shot=0.7, typical_level=40.0).root_weights(w, level)
+    assert both[0] == pytest.approx(1.0) and np.all(np.diff(both[:3]) < 0)
+    np.testing.assert_array_equal(SampleNoise(0.0, 0.0, 40.0).root_weights(w, level), np.ones(4))
+
+
+def test_a_fit_weighed_by_noise_reports_the_unweighted_residual():
+    """Weighed by its samples' noise, a fit of one blurred particle lands on its depth as the
+    unweighted fit does, and reports the residual as an unweighted fit would at its result (the
+    gates on it were chosen so): near the unweighted fit's own, not the smaller weighted one."""
+    model = CameraModel.from_metadata(simulated_camera_metadata(size=480))
+    optics = model.optics
+    table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
+    s_hat = 0.13 * table.basis_m[:, 0] + 0.07 * table.basis_m[:, 1]
+    c = 3.0 * optics.lens_pitch_m / optics.aperture_diameter_m
+    alpha = 1.0 / (1.0 - c)
+    z = float(optics.z_of_alpha(alpha))
+    one = Particles(np.array([s_hat[0] * z / optics.exit_pupil_m]), np.array([s_hat[1] * z / optics.exit_pupil_m]),
+                    np.array([z]), np.array([1800.0]))
+    image = render_exposure(model, one, seed=3)
+    args = dict(background=0.0, aperture_per_lens_plane=aperture_per_lens_plane(optics))
+    start = (np.array([s_hat[0]]), np.array([s_hat[1]]), np.array([alpha * 1.0005]))
+    plain = fit_rays(image, table, *start, **args)
+    weighed = fit_rays(image, table, *start, **args, noise=SampleNoise(read=4.0, shot=0.7, typical_level=0.0))
+    assert abs(weighed.alpha[0] - alpha) < 2e-4 and abs(plain.alpha[0] - alpha) < 2e-4
+    assert 0.8 < weighed.residual[0] / plain.residual[0] < 1.25

@@ -9,6 +9,7 @@ from analysis.cache import Cache
 from analysis.calibration.calibrate import Calibration, calibrate
 from analysis.camera.model import CameraModel
 from analysis.formats.exposure import Exposure
+from analysis.depth.refine import WIDE_BLUR_PITCHES
 from analysis.formats.whites import WhiteImage
 from analysis.pipeline.depth_range import FIT_MARGIN_STEPS
 from analysis.pipeline.params import PipelineParams
@@ -241,3 +242,21 @@ def test_the_late_pass_keeps_blurred_particles_whose_pattern_the_noise_hides(see
     without = score(process(exposure, calibration, cache=cache).particles, columns, nn_mm=nn)
     assert with_rule.n_matched >= without.n_matched + 2, (with_rule, without)
     assert with_rule.n_found - with_rule.n_matched <= without.n_found - without.n_matched + 1, (with_rule, without)
+
+
+def test_noise_weights_refit_the_blurred_particles_and_keep_every_one():
+    """``weigh_noise``: the last refit of the strongly blurred particles weighs each sample by its
+    noise. Through ideal optics it keeps the same particles and moves the blurred ones' depths,
+    for a depth error no worse than the unweighted one's."""
+    ball = make_scenario("ball", 3).particles
+    off = Particles(ball.x_mm, ball.y_mm, ball.z_mm - ball.z_mm.mean() + 57.4, ball.brightness_dn)
+    plain, truth, _ = _process(off)
+    weighed, _, _ = _process(off, params=PipelineParams(weigh_noise=True))
+    nn = mean_nn_distance(truth["X"], truth["Y"], truth["Z"])
+    s_plain, s_weighed = score(plain.particles, truth, nn_mm=nn), score(weighed.particles, truth, nn_mm=nn)
+    assert s_plain.n_true >= 20 and s_weighed.n_matched == s_plain.n_matched == len(weighed) == len(plain)
+    moved = np.abs(weighed.particles["Z"] - plain.particles["Z"]) > 1e-3
+    # Strongly blurred before the refit (its radius over WIDE_BLUR_PITCHES; the refit moves it a little).
+    blurred = plain.particles["blur_pitches"] > 0.9 * 2 * WIDE_BLUR_PITCHES
+    assert moved.sum() >= 3 and not np.any(moved & ~blurred)
+    assert s_weighed.depth_abs_rms_over_nn <= s_plain.depth_abs_rms_over_nn

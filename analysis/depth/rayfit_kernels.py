@@ -16,6 +16,7 @@ import numpy as np
 from numba import prange
 
 from .candidate_kernels import FASTMATH, censored_intensity, profile_vertex
+from .render_kernels import lit_fraction
 
 #: A fine pass whose depth lies farther than this fraction of its half-window from the centre is
 #: run again about it (when the caller asks for it: ``recentre``).
@@ -54,8 +55,8 @@ class PriorTerms(NamedTuple):
 
 
 @numba.njit(cache=True, parallel=True, fastmath=FASTMATH)
-def fit_all(centres, sample_ptr, lens_ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, cells, coarse, fine, prior,
-            recentre, coarse_floor, out, order, slot_ptr):
+def fit_all(centres, sample_ptr, lens_ptr, uv, values, root_w, censored, sx0, sy0, c_lo, c_hi, cells, coarse, fine,
+            prior, recentre, coarse_floor, out, order, slot_ptr):
     # Per particle, a coarse grid search over [c_lo, c_hi] then a fine one around its result,
     # centred again on its own result up to `recentre` times while that lies beyond
     # RECENTRE_FRACTION of the window from the centre; a particle whose coarse intensity is at most
@@ -72,30 +73,32 @@ def fit_all(centres, sample_ptr, lens_ptr, uv, values, censored, sx0, sy0, c_lo,
             cen = centres[la:lb]
             ptr = sample_ptr[la:lb + 1]
             first = np.empty(7)
-            _fit_one(cen, ptr, uv, values, censored, sx0[p], sy0[p], c_lo[p], c_hi[p], coarse, cells, c_prior[p],
-                     prior_k[p], prior_floor[p], first)
+            _fit_one(cen, ptr, uv, values, root_w, censored, sx0[p], sy0[p], c_lo[p], c_hi[p], coarse, cells,
+                     c_prior[p], prior_k[p], prior_floor[p], first)
             if first[3] <= max(coarse_floor, 0.0):
                 out[p, :] = first
                 continue
             step = (c_hi[p] - c_lo[p]) / max(n_c - 1, 1)
             half_c = max(2.0 * first[6], 1.5 * step)
-            _fit_one(cen, ptr, uv, values, censored, first[0], first[1], first[2] - half_c, first[2] + half_c, fine,
-                     cells, c_prior[p], prior_k[p], prior_floor[p], out[p])
+            _fit_one(cen, ptr, uv, values, root_w, censored, first[0], first[1], first[2] - half_c,
+                     first[2] + half_c, fine, cells, c_prior[p], prior_k[p], prior_floor[p], out[p])
             for _ in range(recentre):
                 if out[p, 3] <= 0.0 or abs(out[p, 2] - first[2]) <= RECENTRE_FRACTION * half_c:
                     break
                 first[:] = out[p, :]
-                _fit_one(cen, ptr, uv, values, censored, first[0], first[1], first[2] - half_c, first[2] + half_c,
-                         fine, cells, c_prior[p], prior_k[p], prior_floor[p], out[p])
+                _fit_one(cen, ptr, uv, values, root_w, censored, first[0], first[1], first[2] - half_c,
+                         first[2] + half_c, fine, cells, c_prior[p], prior_k[p], prior_floor[p], out[p])
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def _fit_one(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, cells, c_prior, prior_k, prior_floor,
-             out):
+def _fit_one(centres, ptr, uv, values, root_w, censored, sx0, sy0, c_lo, c_hi, grid, cells, c_prior, prior_k,
+             prior_floor, out):
     """Grid of (c, s) candidates over the lenses ``centres`` (samples ``ptr[l]:ptr[l+1]`` each);
-    writes mean s_x, s_y, c, best I0, lit samples, residual, std of c."""
+    writes mean s_x, s_y, c, best I0, lit samples, residual (the unweighted rms misfit over I0 of
+    the best candidate), std of c."""
     temperature = grid.temperature
-    m, costs, cand, inten, lit = grid_costs(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, cells)
+    m, costs, cand, inten, lit = grid_costs(centres, ptr, uv, values, root_w, censored, sx0, sy0, c_lo, c_hi, grid,
+                                            cells)
     n_cand = costs.size
     best = 0
     for k in range(n_cand):
@@ -134,16 +137,43 @@ def _fit_one(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, cel
         out[2] = profile_vertex(costs, best, grid.n_depths, grid.n_lateral ** 2, c_lo, c_hi, scale, mc)
     out[3] = i0
     out[4] = lit[best]
-    out[5] = np.sqrt(max(costs[best], 0.0) / max(m, 1)) / i0
+    if root_w.size == 0:
+        out[5] = np.sqrt(max(costs[best], 0.0) / max(m, 1)) / i0
+    else:
+        out[5] = _plain_residual(centres, ptr, uv, values, root_w, censored, cand[best, 0], cand[best, 1],
+                                 cand[best, 2], i0, cells, grid.footprint)
     out[6] = np.sqrt(max(mc2 / wsum - mc * mc, 0.0))
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def grid_costs(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, cells):
+def _plain_residual(centres, ptr, uv, values, root_w, censored, sx, sy, c, i0, cells, footprint):
+    """The rms misfit over ``i0`` of the candidate ``(sx, sy, c)`` of intensity ``i0``, every sample
+    counted alike (``values`` come multiplied by ``root_w``), as the gates on the residual were
+    chosen: a weighted fit's residual is comparable with an unweighted one's."""
+    cost = 0.0
+    m = 0
+    for lens in range(centres.shape[0]):
+        for j in range(ptr[lens], ptr[lens + 1]):
+            v = values[j] / root_w[j]
+            short = v - i0 * lit_fraction(uv[j, 0], uv[j, 1], centres[lens, 0], centres[lens, 1], sx, sy, c, cells,
+                                          footprint)
+            if not censored[j] or short > 0.0:
+                cost += short * short
+            m += 1
+    return np.sqrt(cost / max(m, 1)) / i0
+
+
+@numba.njit(cache=True, fastmath=FASTMATH)
+def grid_costs(centres, ptr, uv, values, root_w, censored, sx0, sy0, c_lo, c_hi, grid, cells):
     """Cost, best I0 and lit samples of each candidate ``(s_x, s_y, c)`` of ``grid`` (a
     :class:`GridPass`: depths over ``[c_lo, c_hi]``, positions about ``(sx0, sy0)``) in its order
     (depth, then y, then x): returns the number of samples and the arrays ``costs``, ``cand``
     (candidate s_x, s_y, c), ``inten`` and ``lit``.
+
+    The cost is weighted least squares where ``root_w`` holds one value per sample: sample ``j``'s
+    misfit counts ``root_w[j]^2`` times (its inverse noise variance, relative to a typical
+    sample's), and ``values`` come multiplied by ``root_w`` already, so only the model's fractions
+    are multiplied here. An empty ``root_w``: every sample counts once.
 
     A sample's lit fraction is that of :func:`analysis.depth.render_kernels.lit_fraction`, with the same shortcuts (a footprint
     wholly inside or outside the cell by the margin ``|c| s_max``, crosstalk only near the rim),
@@ -164,6 +194,7 @@ def grid_costs(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, c
     cand = np.empty((n_cand, 3))
     inten = np.empty(n_cand)
     lit = np.empty(n_cand)
+    weighted = root_w.size > 0
     j_first = ptr[0] if n_lens > 0 else 0
     m = ptr[n_lens] - j_first if n_lens > 0 else 0
     # Saturated samples are censored: their true value is at least the one read, so they weigh only
@@ -332,16 +363,17 @@ def grid_costs(centres, ptr, uv, values, censored, sx0, sy0, c_lo, c_hi, grid, c
                     for q in range(n_pos):
                         frac[q] = cnt[q] / n_ap[i] if within[q] else 0.0
                 v = values[j]
+                rw = root_w[j] if weighted else 1.0
                 if n_cens > 0 and censored[j]:
                     for q in range(n_pos):
-                        cens_f[cens_slot[i], q] = frac[q]
+                        cens_f[cens_slot[i], q] = frac[q] * rw
                         s_f[q] += frac[q]
                     continue
                 for q in range(n_pos):
                     f = frac[q]
                     if f > 0.0:
-                        s_vf[q] += v * f
-                        s_ff[q] += f * f
+                        s_vf[q] += v * f * rw
+                        s_ff[q] += f * f * rw * rw
                         s_f[q] += f
         for q in range(n_pos):
             if s_ff[q] > 0 and s_vf[q] > 0:

@@ -62,7 +62,8 @@ from analysis.camera.model import IDEAL_POINT_SPREAD_PX, CameraModel
 from analysis.depth.deblend import deblend, refit_blurred, sharpen_blurred, split_shared
 from analysis.depth.prior import apply_depth_prior
 from analysis.depth.quality import FIT_RESIDUAL_SLACK, drop_extended, drop_misfits, patterned, too_close
-from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
+from analysis.depth.rayfit import (FitGrid, RayFit, SampleNoise, aperture_per_lens_plane, fit_rays, render_fits,
+                                   unexplained_light)
 from analysis.depth.refine import (COARSE_LATERAL_PITCHES, COARSE_TEMPERATURE, PROBE_RESIDUAL, SAME_DEPTH_SIGMAS,
                                    RayFitter, accept, inside, refine_peaks)
 from analysis.detection.curves import Peaks, Tracks
@@ -184,6 +185,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         background = estimate_background(exposure.image, fit_table, noise_dn=noise_dn)
         samples = select_samples(exposure.image, table, background=background, noise_sigmas=params.noise_sigmas)
         threshold = product_threshold(samples.sigma, params)
+        noise = SampleNoise(*samples.noise, samples.background) if params.weigh_noise else None
     with clock.stage("subaperture"):
         sub = subaperture_image(exposure.image, table, fraction=params.aperture_fraction,
                                 blur_sigma_px=params.blur_sigma_px, grid=grid, samples=samples, cache=cache)
@@ -273,7 +275,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
             quality = {"leftover": share}
         if params.deblend and len(peaks):
             with clock.stage("sharpen"):
-                peaks, fit = sharpen_blurred(fitter, peaks, fit)
+                peaks, fit = sharpen_blurred(fitter, peaks, fit, noise)
     if len(peaks) == 0:
         if len(tracks):
             warnings.append("particles were seen, but none is brightest inside the alpha range "
