@@ -80,12 +80,13 @@ class PipelineParams:
         The last refit of the strongly blurred particles (``sharpen``) weighs each sample by its
         noise (:class:`analysis.depth.rayfit.SampleNoise`), not all alike. Off by default: it
         helps where the forward model matches the camera (depth error through ideal optics 14-27 %
-        lower on tuning seeds 27 and fresh seeds 70-71, with vignetting alone 3-19 % lower on
-        fresh 70-71), but with every effect together it did no better (tuning balls 27 and
-        clouds 27) or worse (fresh off-focus balls 70-71, pooled: 3.1 -> 3.9 % of NN). A wider
-        blur and a pixel response falling toward the micro-image rims together bias realistic
-        depths (about +2 % of NN), which the model does not yet follow (it counts a pixel's
-        blurred points alike), and the weights lean on the samples where that bias is largest.
+        lower on tuning seed 27 and fresh seeds 70-71, with vignetting alone 3-19 % lower on
+        fresh 70-71), but with every effect together it was mixed on tuning seed 27 (ball 3.8 ->
+        4.0 %, cloud 4.9 -> 4.1 % of NN) and worse on fresh off-focus balls 70-71 (pooled 3.1 ->
+        3.9 %). A wider blur and a pixel response falling toward the micro-image rims together
+        bias realistic depths (about +2 % of NN), which the model does not follow (likely: it
+        counts a pixel's blurred points alike), and the weights lean on the samples where that
+        bias is largest.
         It takes that refit 1.3-1.9x its time (tuning ball 27 and cloud 27).
     min_separation
         A prior of the physics: particles in a plasma repel one another, so none comes much closer
