@@ -548,7 +548,7 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
         values += _render_gathered(own, idx, g, uv, aperture_per_lens_plane, blur_px, render_points)
     root_w = np.empty(0)  # every sample counts alike
     if noise is not None:
-        root_w = noise.root_weights(idx.weight(g.ids), _at(bg.astype(np.float64), g.ids))
+        root_w = noise.root_weights(idx.weight(g.ids), _at(bg, g.ids).astype(np.float64))
         values *= root_w
     c_prior, prior_k = _prior_in_c(n, prior_alpha, prior_sigma)
     # The uniform part's density relative to the Gaussian's peak.
