@@ -204,8 +204,11 @@ def _reference_costs(centres, ptr, uv, values, root_w, censored, sx0, sy0, c_lo,
     return np.array(costs)
 
 
-@pytest.mark.parametrize("blur, points", [(0.4, 1), (1.1, 3), (2.5, 3), (-1.1, 3), (-2.5, 2)])
-def test_grid_costs_match_the_model_one_candidate_at_a_time(blur, points):
+@pytest.mark.parametrize("blur, points, rim", [(0.4, 1, 1.0), (1.1, 3, 1.0), (2.5, 3, 1.0), (-1.1, 3, 1.0),
+                                               (-2.5, 2, 1.0), (1.1, 3, 0.6), (-2.5, 3, 0.6)])
+def test_grid_costs_match_the_model_one_candidate_at_a_time(blur, points, rim):
+    """The grid kernel's costs (with its shortcuts) are those of the model one candidate at a time
+    (:func:`lit_fraction`), with a flat pixel response and one falling to ``rim`` at the rim."""
     model = CameraModel.from_metadata(simulated_camera_metadata(size=480))
     optics = model.optics
     table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
@@ -230,7 +233,7 @@ def test_grid_costs_match_the_model_one_candidate_at_a_time(blur, points):
     values *= root_w
     grid = GridPass(4, 0.3 * idx.pitch_m, 3, pixel_footprint(points, 0.5) * idx.u_per_px, 1.0)
     args = (g.centres, g.sample_ptr, uv, values, root_w, np.zeros(values.size, np.bool_), sx0, sy0, c_lo, c_hi,
-            grid, idx.cells(aperture_per_lens_plane(optics)))
+            grid, idx.cells(aperture_per_lens_plane(optics), np.log(rim) / table.micro_image_radius_px ** 2))
     n = 4 * 3 * 3
     _, costs, _, _, _ = grid_costs(*args)
     assert costs.size == n
@@ -265,11 +268,56 @@ def test_point_counts_skip_only_points_settled_at_every_position():
     edges += rng.choice([-1.0, 0.0, 1.0], size=(60, 3)) * lat_t + rng.normal(0.0, 1e-12, size=(60, 3))
     base = np.ascontiguousarray(np.vstack([base, edges]))
     cnt = np.empty(d0.size)
-    _count_inside(base, base.shape[0], d0, d1, d2, *half_sq, lat_t, cnt, np.empty(base.shape[0], np.int64))
+    weight = rng.uniform(0.5, 1.0, size=base.shape[0])  # each point's pixel response
+    _count_inside(base, base.shape[0], d0, d1, d2, *half_sq, lat_t, weight, cnt, np.empty(base.shape[0], np.int64))
     shifted = base[:, None, :] + np.stack([d0, d1, d2], axis=-1)[None, :, :]
-    expected = np.all(np.abs(shifted) <= half_sq, axis=-1).sum(axis=0)
-    np.testing.assert_array_equal(cnt, expected)
-    assert 0 < expected.min() and expected.max() < base.shape[0]
+    inside = np.all(np.abs(shifted) <= half_sq, axis=-1)
+    np.testing.assert_allclose(cnt, weight @ inside, rtol=1e-12)
+    assert 0 < inside.sum(axis=0).min() and inside.sum(axis=0).max() < base.shape[0]
+
+
+def test_each_point_of_a_pixel_counts_by_the_response_to_the_aperture_point_it_sees():
+    """lit_fraction against its definition: the response-weighted share of a pixel's points whose
+    ray enters the lens, over the weights of all that see an aperture (own or, beyond the rim, a
+    neighbour's); a pixel wholly lit stays at 1 whatever the response."""
+    model = CameraModel.from_metadata(simulated_camera_metadata(size=480))
+    table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
+    idx = TableIndex(table)
+    ratio = aperture_per_lens_plane(model.optics)
+    k_px = np.log(0.5) / table.micro_image_radius_px ** 2  # half the centre's response at the rim
+    cells = idx.cells(ratio, k_px)
+    flat = idx.cells(ratio)
+    k = cells.response_k
+    assert k == pytest.approx(np.log(0.5) / table.aperture_radius_m ** 2, rel=1e-9)
+    sub = pixel_footprint(7, 1.2) * idx.u_per_px
+    r_ap = table.aperture_radius_m
+    c = 0.02
+    checked = 0
+    for u0, v0 in [(0.0, 0.0), (0.55 * r_ap, 0.1 * r_ap), (0.93 * r_ap, -0.2 * r_ap), (-0.3 * r_ap, 0.97 * r_ap)]:
+        for sx in np.linspace(-0.6, 0.6, 7) * idx.pitch_m:
+            sy = 0.2 * idx.pitch_m
+            # Brute force: each point sees its own aperture point or, beyond the rim, a neighbour's.
+            num = den = 0.0
+            for dx, dy in sub:
+                a = np.array([u0 + dx, v0 + dy])
+                shift = np.zeros(2)
+                if a @ a > cells.r_ap2:
+                    seen = [nb for nb in range(6) if np.sum((a + cells.neigh_u[nb]) ** 2) <= cells.r_ap2]
+                    if not seen:
+                        continue
+                    a = a + cells.neigh_u[seen[0]]
+                    shift = cells.neigh_s[seen[0]]
+                ray = np.array([sx, sy]) + c * a - shift
+                w = np.exp(k * (a @ a))
+                den += w
+                num += w * bool(np.all(np.abs(cells.normals @ ray) <= cells.half_sq))
+            f = lit_fraction(u0, v0, 0.0, 0.0, sx, sy, c, cells, sub)
+            assert f == pytest.approx(num / den, rel=1e-9, abs=1e-12)
+            if 0.05 < f < 0.95:  # partly lit: the response changes the share
+                assert abs(f - lit_fraction(u0, v0, 0.0, 0.0, sx, sy, c, flat, sub)) > 1e-3
+                checked += 1
+    assert checked >= 3
+    assert lit_fraction(0.1 * r_ap, 0.0, 0.0, 0.0, 0.0, 0.0, 1e-4, cells, sub) == pytest.approx(1.0)
 
 
 def test_deblending_drops_a_particle_seen_twice(scene):

@@ -24,7 +24,7 @@ SIZE = 1024
 
 
 def _process(particles: Particles, *, chamber: ChamberLight | None = None, params: PipelineParams | None = None,
-             seed: int = 1):
+             seed: int = 1, noise: bool = True):
     """Render ``particles`` (and ``chamber``'s light) on a centred crop, calibrate from its white
     image, process with the defaults; the truth of the particles in view."""
     meta = simulated_camera_metadata(size=SIZE)
@@ -32,7 +32,7 @@ def _process(particles: Particles, *, chamber: ChamberLight | None = None, param
     private = simulated_private_metadata()
     white = WhiteImage.from_image("MOD_0001", render_white_image(model, seed=seed + 100), meta, private)
     calibration = calibrate(white)
-    image = render_exposure(model, particles, seed=seed, background_dn=40.0, chamber=chamber)
+    image = render_exposure(model, particles, seed=seed, background_dn=40.0, chamber=chamber, noise=noise)
     result = process(Exposure(image, meta, private), calibration, params, cache=Cache())
     truth = particle_truth(model, particles)
     shown = in_view(model, truth)
@@ -265,13 +265,44 @@ def test_noise_weights_refit_the_blurred_particles_and_keep_every_one():
 @pytest.mark.xfail(strict=True, reason="known: ideal optics split a particle blurred over 11 pitches into two "
                                        "fits (stop 41); passes once that is mended")
 def test_isolated_particles_blurred_over_eleven_pitches_are_not_split():
-    """Nine particles 1.2 mm apart, blurred over 10-12 pitches, through ideal optics: nine found.
-    Today the one at (0, -1.2) gets a second fit 0.43 mm nearer with a fifth of its light and five
-    times the others' misfit, which the line-of-sight tests keep (the pair explains the pixels
-    better than one fit)."""
+    """Nine particles 1.2 mm apart, blurred over 10-12 pitches, through ideal optics, noise-free:
+    nine found. Today the one at (0, -1.2) gets a second fit 0.43 mm nearer with a fifth of its
+    light and five times the others' misfit, which the line-of-sight tests keep (the pair explains
+    the pixels better than one fit). (With read and shot noise, seed 1, nine are found since the
+    fit models the pixel response the white image shows: a hair below flat there, by its noise.
+    Noise-free, the split remains.)"""
     gx, gy = np.meshgrid([-1.2, 0.0, 1.2], [-1.2, 0.0, 1.2])
     grid = Particles(gx.ravel(), gy.ravel(), 56.0 + np.linspace(-0.2, 0.2, 9), np.full(9, 1500.0))
-    result, truth, _ = _process(grid)
+    result, truth, _ = _process(grid, noise=False)
     assert truth["X"].size == 9
     s = score(result.particles, truth, nn_mm=mean_nn_distance(truth["X"], truth["Y"], truth["Z"]))
     assert s.n_matched == 9 and len(result) == 9, s
+
+
+def test_a_pixel_response_falling_toward_the_rim_under_a_wide_blur_biases_no_depth():
+    """Nine isolated particles, noise-free, blurred over 4-6 pitches through a 0.8 px blur and a
+    response falling to 0.75 at the micro-image rims: the depth fit models the response the white
+    image shows, so their depths come out as unbiased as through ideal optics. Counting a pixel's
+    points alike put them 15-17 um (+2 % of a cloud's spacing) too far from focus."""
+    from analysis.simulation.camera_effects import CameraEffects
+    from analysis.simulation.realism import Realism
+
+    meta = simulated_camera_metadata(size=SIZE)
+    model = CameraModel.from_metadata(meta)
+    private = simulated_private_metadata()
+    camera = CameraEffects.build(Realism(blur_px=0.8, rim_response=0.75), serial="A202160042")
+    calibration = calibrate(WhiteImage.from_image("MOD_0001", render_white_image(model, seed=101, camera=camera),
+                                                  meta, private))
+    assert calibration.profile is not None and calibration.profile.rim_response == pytest.approx(0.75, abs=0.02)
+    gx, gy = np.meshgrid([-1.2, 0.0, 1.2], [-1.2, 0.0, 1.2])
+    errors = []
+    for z in (57.0, 58.0):
+        grid = Particles(gx.ravel(), gy.ravel(), z + np.linspace(-0.2, 0.2, 9), np.full(9, 1500.0))
+        image = render_exposure(model, grid, seed=1, background_dn=40.0, camera=camera, noise=False)
+        found = process(Exposure(image, meta, private), calibration, cache=Cache()).particles
+        assert len(found["X"]) == 9
+        for x, y, z_true in zip(grid.x_mm, grid.y_mm, grid.z_mm):
+            k = np.argmin(np.hypot(found["X"] - x, found["Y"] - y))
+            assert np.hypot(found["X"][k] - x, found["Y"][k] - y) < 0.05
+            errors.append(found["Z"][k] - z_true)
+    assert abs(np.mean(errors)) < 0.008, np.mean(errors)  # mm

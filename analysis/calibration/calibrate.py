@@ -7,6 +7,7 @@ frames, join it in :func:`analysis.calibration.cache.load_calibration`."""
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -87,6 +88,15 @@ class Calibration:
     def blur_px(self) -> float:
         """Sigma (px) of the camera's point spread for the depth fit: the white image's, else the default."""
         return DEFAULT_BLUR_PX if self.profile is None else self.profile.blur_px
+
+    @property
+    def response_slope(self) -> float:
+        """The pixel response within a micro-image for the depth fit, ``ln(response)`` per squared
+        pixel of offset from its centre: the white image's (``rim_response ** (r / radius_px) ** 2``),
+        else 0 (flat)."""
+        if self.profile is None:
+            return 0.0
+        return math.log(self.profile.rim_response) / self.profile.radius_px ** 2
 
     @property
     def defect_mask(self) -> np.ndarray | None:

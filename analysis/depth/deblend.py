@@ -232,7 +232,8 @@ def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
         alike[rows] = pattern_overlap(fitter.table, fit.take(faint[rows]), fit.take(bright[rows]),
                                       fitter.blur_radius_m(fit.alpha[faint[rows]]) + 0.5 * fitter.pitch_m,
                                       aperture_per_lens_plane=fitter.aperture_per_lens_plane,
-                                      blur_px=fitter.blur_px, cache=fitter.cache) > SAME_PATTERN
+                                      blur_px=fitter.blur_px, response_slope=fitter.response_slope,
+                                      cache=fitter.cache) > SAME_PATTERN
     weak[faint[alike]] = True
     faint, bright, unproven = faint[~alike], bright[~alike], unproven[~alike]
     explained = fitter.render(fit)  # the light of all fits, for both tests below

@@ -199,8 +199,8 @@ def unexplained_light(image: np.ndarray, table: LightFieldTable, sx_m: np.ndarra
 
 def point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius_m: np.ndarray, *,
                   background: float | np.ndarray, explained: np.ndarray, aperture_per_lens_plane: float,
-                  spread_m: float | None, blur_px: float = DEFAULT_BLUR_PX, saturation: float = 4095.0,
-                  cache: Cache | None = None) -> np.ndarray:
+                  spread_m: float | None, blur_px: float = DEFAULT_BLUR_PX, response_slope: float = 0.0,
+                  saturation: float = 4095.0, cache: Cache | None = None) -> np.ndarray:
     """Per fit, how much of the variation of the light within the lenses (each lens's own mean
     level taken out) its point-source pattern explains, and how much the same fit spread over a
     source ``spread_m`` across does (its centre and six points on a ring): the squared
@@ -219,25 +219,28 @@ def point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius
     def part(rows: slice) -> np.ndarray:
         return _point_pattern(image, table, fit.take(rows), radius[rows], background=background,
                               explained=explained, aperture_per_lens_plane=aperture_per_lens_plane,
-                              blur_px=blur_px, saturation=saturation, spread_m=spread_m, cache=cache)
+                              blur_px=blur_px, response_slope=response_slope, saturation=saturation,
+                              spread_m=spread_m, cache=cache)
     return _in_chunks(len(fit), part, columns=2)
 
 
 def _point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius_m: np.ndarray, *,
                    background: float | np.ndarray, explained: np.ndarray, aperture_per_lens_plane: float,
-                   blur_px: float, saturation: float, spread_m: float | None, cache: Cache | None) -> np.ndarray:
+                   blur_px: float, response_slope: float, saturation: float, spread_m: float | None,
+                   cache: Cache | None) -> np.ndarray:
     n = len(fit)
     idx = table_index(table, cache)
     g = idx.gather(fit.sx_m, fit.sy_m, radius_m)
     raw = np.ascontiguousarray(image).reshape(-1)[table.pixel_index[g.ids]].astype(np.float64)
     uv = idx.uv(g.ids)
-    own = _render_gathered(fit, idx, g, uv, aperture_per_lens_plane, blur_px)
+    cells = idx.cells(aperture_per_lens_plane, response_slope)
+    own = _render_gathered(fit, idx, g, uv, cells, blur_px)
     spread = None
     if spread_m is not None:
         spread = own / 7.0
         for a in np.arange(6) * np.pi / 3:
             moved = replace(fit, sx_m=fit.sx_m + spread_m * np.cos(a), sy_m=fit.sy_m + spread_m * np.sin(a))
-            spread += _render_gathered(moved, idx, g, uv, aperture_per_lens_plane, blur_px) / 7.0
+            spread += _render_gathered(moved, idx, g, uv, cells, blur_px) / 7.0
     light = ((raw - table.black_level) / idx.weight(g.ids) - _at(background_per_sample(table, background), g.ids)
              - explained[g.ids] + own)
     use = (raw < saturation).astype(np.float64)
@@ -249,7 +252,7 @@ def _point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radiu
 
 
 def pattern_overlap(table: LightFieldTable, fit: RayFit, other: RayFit, radius_m: np.ndarray, *,
-                    aperture_per_lens_plane: float, blur_px: float = DEFAULT_BLUR_PX,
+                    aperture_per_lens_plane: float, blur_px: float = DEFAULT_BLUR_PX, response_slope: float = 0.0,
                     cache: Cache | None = None) -> np.ndarray:
     """Per row, how alike the light of ``fit`` and of ``other`` (row for row) falls within the lenses
     within ``radius_m`` of ``fit``: the squared correlation of their renders, each lens's mean
@@ -263,13 +266,14 @@ def pattern_overlap(table: LightFieldTable, fit: RayFit, other: RayFit, radius_m
         raise ValueError(f"{len(fit)} fits against {len(other)} others")
     idx = table_index(table, cache)
     radius = _points(fit.sx_m, radius_m)[1]
+    cells = idx.cells(aperture_per_lens_plane, response_slope)
 
     def part(rows: slice) -> np.ndarray:
         one, two = fit.take(rows), other.take(rows)
         g = idx.gather(one.sx_m, one.sy_m, radius[rows])
         uv = idx.uv(g.ids)
-        return _lens_correlation(_render_gathered(one, idx, g, uv, aperture_per_lens_plane, blur_px),
-                                 _render_gathered(two, idx, g, uv, aperture_per_lens_plane, blur_px),
+        return _lens_correlation(_render_gathered(one, idx, g, uv, cells, blur_px),
+                                 _render_gathered(two, idx, g, uv, cells, blur_px),
                                  g, np.ones(g.ids.size), len(one))
     return _in_chunks(len(fit), part)
 
@@ -338,7 +342,8 @@ def _sum_per_point(values: np.ndarray, g: Gathered, n: int) -> np.ndarray:
 
 
 def render_fits(table: LightFieldTable, fit: RayFit, *, aperture_per_lens_plane: float, blur_px: float = DEFAULT_BLUR_PX,
-                out: np.ndarray | None = None, cache: Cache | None = None, points: int = RENDER_POINTS) -> np.ndarray:
+                response_slope: float = 0.0, out: np.ndarray | None = None, cache: Cache | None = None,
+                points: int = RENDER_POINTS) -> np.ndarray:
     """The light that fitted particles put on each sample of ``table`` (devignetted DN), each pixel
     modelled as ``points`` x ``points`` points (:func:`pixel_footprint`).
 
@@ -354,18 +359,18 @@ def render_fits(table: LightFieldTable, fit: RayFit, *, aperture_per_lens_plane:
         return out
     reach = np.abs(1.0 - 1.0 / fit.alpha) * idx.radius_m + 1.8 * idx.pitch_m
     g = idx.gather(fit.sx_m, fit.sy_m, reach)
-    light = _render_gathered(fit, idx, g, idx.uv(g.ids), aperture_per_lens_plane, blur_px, points)
+    light = _render_gathered(fit, idx, g, idx.uv(g.ids), idx.cells(aperture_per_lens_plane, response_slope), blur_px,
+                             points)
     render_kernels.scatter_add(out, g.ids, light)
     return out
 
 
-def _render_gathered(fit: RayFit, idx: TableIndex, g: Gathered, uv: np.ndarray, aperture_per_lens_plane: float,
+def _render_gathered(fit: RayFit, idx: TableIndex, g: Gathered, uv: np.ndarray, cells: kern.Cells,
                      blur_px: float, points: int = RENDER_POINTS) -> np.ndarray:
     """The light of particle ``p`` on each of its own gathered samples (``points`` x ``points`` per pixel)."""
     out = np.zeros(uv.shape[0])
     render_kernels.render_samples(g.centres, g.sample_ptr, g.lens_ptr, uv, fit.sx_m, fit.sy_m, 1.0 - 1.0 / fit.alpha,
-                        fit.intensity, idx.cells(aperture_per_lens_plane), pixel_footprint(points, blur_px) * idx.u_per_px,
-                        out)
+                                  fit.intensity, cells, pixel_footprint(points, blur_px) * idx.u_per_px, out)
     return out
 
 
@@ -435,7 +440,8 @@ def pixel_footprint(n_side: int, blur_px: float) -> np.ndarray:
 def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m: np.ndarray,
              alpha0: np.ndarray, *, background: float | np.ndarray, aperture_per_lens_plane: float,
              alpha_half_range: float = 0.004, coarse: FitGrid = COARSE, fine: FitGrid = FINE,
-             reach_pitches: float = 1.2, blur_px: float = DEFAULT_BLUR_PX, subtract: np.ndarray | None = None,
+             reach_pitches: float = 1.2, blur_px: float = DEFAULT_BLUR_PX, response_slope: float = 0.0,
+             subtract: np.ndarray | None = None,
              own: RayFit | None = None, prior_alpha: np.ndarray | None = None,
              prior_sigma: np.ndarray | None = None, prior_outlier: float = 0.05, saturation: float = 4095.0,
              recentre: int = 0, coarse_floor: float = 0.0, noise: SampleNoise | None = None,
@@ -477,6 +483,10 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
         Gaussian blur (pixels) of the sensor image (diffraction, crosstalk): each pixel is
         modelled by points spread over its area and this blur, so partly lit pixels at the
         edges of a lens's share of the light count by how much of them is lit.
+    response_slope : float
+        The pixel response within a micro-image, ``ln(response)`` per squared pixel of offset from
+        its centre (:attr:`analysis.calibration.calibrate.Calibration.response_slope`; 0: flat):
+        each of a pixel's points counts by the response to the aperture point it sees.
     prior_alpha, prior_sigma, prior_outlier : ndarray of shape (n,), ndarray, float
         A prior on each particle's depth (e.g. :func:`analysis.depth.prior.neighbour_prior`): a
         Gaussian of this centre and width with probability ``1 - prior_outlier``, else uniform over
@@ -522,6 +532,7 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
     RayFit
     """
     idx = table_index(table, cache)
+    cells = idx.cells(aperture_per_lens_plane, response_slope)
     sx0 = np.asarray(sx0_m, dtype=np.float64).ravel()
     sy0 = np.asarray(sy0_m, dtype=np.float64).ravel()
     a0 = np.asarray(alpha0, dtype=np.float64).ravel()
@@ -545,7 +556,7 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
     if own is not None:
         if len(own) != n:
             raise ValueError(f"own holds {len(own)} fits for {n} particles")
-        values += _render_gathered(own, idx, g, uv, aperture_per_lens_plane, blur_px, render_points)
+        values += _render_gathered(own, idx, g, uv, cells, blur_px, render_points)
     root_w = np.empty(0)  # every sample counts alike
     if noise is not None:
         root_w = noise.root_weights(idx.weight(g.ids), _at(bg, g.ids).astype(np.float64))
@@ -558,7 +569,7 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
                            * sigma_c / np.abs(c_hi - c_lo), 0.0)
     out = np.empty((n, 7))
     kern.fit_all(g.centres, g.sample_ptr, g.lens_ptr, uv, values, root_w, censored, sx0, sy0, c_lo, c_hi,
-                 idx.cells(aperture_per_lens_plane), _grid_pass(coarse, idx, blur_px), _grid_pass(fine, idx, blur_px),
+                 cells, _grid_pass(coarse, idx, blur_px), _grid_pass(fine, idx, blur_px),
                  kern.PriorTerms(c_prior, prior_k, prior_floor), int(recentre), float(coarse_floor), out,
                  *_balanced_slots(g.sample_ptr[g.lens_ptr[1:]] - g.sample_ptr[g.lens_ptr[:-1]],
                                   numba.get_num_threads()))

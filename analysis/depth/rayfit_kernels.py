@@ -16,7 +16,7 @@ import numpy as np
 from numba import prange
 
 from .candidate_kernels import FASTMATH, censored_intensity, profile_vertex
-from .render_kernels import lit_fraction
+from .render_kernels import lit_fraction, point_response
 
 #: A fine pass whose depth lies farther than this fraction of its half-window from the centre is
 #: run again about it (when the caller asks for it: ``recentre``).
@@ -33,6 +33,8 @@ class Cells(NamedTuple):
     neigh_s: np.ndarray      # (6, 2) lens-plane offset of each neighbour
     r_ap2: float             # squared aperture radius (with a hair of slack)
     pitch: float             # lens pitch
+    response_k: float = 0.0  # the pixel response falls as exp(response_k |u|^2) with the aperture
+    #                          point u it sees (0: flat); see render_kernels.lit_fraction
 
 
 class GridPass(NamedTuple):
@@ -184,7 +186,7 @@ def grid_costs(centres, ptr, uv, values, root_w, censored, sx0, sy0, c_lo, c_hi,
     are skipped, and so are whole lenses and, within a lens, the rows of samples too far from the
     cell. Sums run over lenses and samples in the order of one candidate at a time.
     """
-    normals, half_sq, neigh_u, neigh_s, r_ap2, pitch = cells
+    normals, half_sq, neigh_u, neigh_s, r_ap2, pitch, resp_k = cells
     n_c, half_lat, n_lat, sub = grid.n_depths, grid.half_lateral, grid.n_lateral, grid.footprint
     n_sub = sub.shape[0]
     n_lens = centres.shape[0]
@@ -251,6 +253,7 @@ def grid_costs(centres, ptr, uv, values, root_w, censored, sx0, sy0, c_lo, c_hi,
     frac = np.empty(n_pos)
     cnt = np.empty(n_pos)
     open_pts = np.empty(n_sub, dtype=np.int64)
+    pw = np.ones(n_sub)  # the points' response weights (all 1 where the response is flat)
     s_vf = np.empty(n_pos)
     s_ff = np.empty(n_pos)
     s_f = np.empty(n_pos)
@@ -326,14 +329,18 @@ def grid_costs(centres, ptr, uv, values, root_w, censored, sx0, sy0, c_lo, c_hi,
                         frac[q] = f
                         straddles |= f < 0.0
                     if straddles:
+                        total = 0.0
                         for q in range(n_sub):
                             base[q, 0] = p0 + c * sub_t[q, 0]
                             base[q, 1] = p1 + c * sub_t[q, 1]
                             base[q, 2] = p2 + c * sub_t[q, 2]
-                        _count_inside(base, n_sub, d0, d1, d2, h0, h1, h2, lat_t, cnt, open_pts)
+                            if resp_k != 0.0:
+                                pw[q] = point_response(uv[j, 0] + sub[q, 0], uv[j, 1] + sub[q, 1], resp_k)
+                            total += pw[q]
+                        _count_inside(base, n_sub, d0, d1, d2, h0, h1, h2, lat_t, pw, cnt, open_pts)
                         for q in range(n_pos):
                             if frac[q] < 0.0:
-                                frac[q] = cnt[q] / n_sub
+                                frac[q] = cnt[q] / total
                 else:
                     if n_ap[i] == 0:
                         continue
@@ -349,19 +356,25 @@ def grid_costs(centres, ptr, uv, values, root_w, censored, sx0, sy0, c_lo, c_hi,
                     if not near:
                         continue
                     n_pt = 0
+                    total = 0.0
                     for q in range(n_sub):
                         w = code[i, q] + 1
                         if w >= 0:
                             base[n_pt, 0] = p0 + shift_t[w, 0] + c * sub_t[q, 0]
                             base[n_pt, 1] = p1 + shift_t[w, 1] + c * sub_t[q, 1]
                             base[n_pt, 2] = p2 + shift_t[w, 2] + c * sub_t[q, 2]
+                            if resp_k != 0.0:  # the response to the aperture point it sees
+                                ax = uv[j, 0] + sub[q, 0] + (neigh_u[w - 1, 0] if w > 0 else 0.0)
+                                ay = uv[j, 1] + sub[q, 1] + (neigh_u[w - 1, 1] if w > 0 else 0.0)
+                                pw[n_pt] = point_response(ax, ay, resp_k)
+                            total += pw[n_pt]
                             n_pt += 1
-                    if not _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, lat_t, cnt, open_pts):
+                    if not _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, lat_t, pw, cnt, open_pts):
                         continue  # no point lands in the cell at any position
                     # A point in the cell puts the footprint around its own ray within the margin
                     # of the cell, so the per-candidate shortcut needs no test of its own here.
                     for q in range(n_pos):
-                        frac[q] = cnt[q] / n_ap[i] if within[q] else 0.0
+                        frac[q] = cnt[q] / total if within[q] else 0.0
                 v = values[j]
                 rw = root_w[j] if weighted else 1.0
                 if n_cens > 0 and censored[j]:
@@ -540,9 +553,10 @@ def _beyond(p0, p1, p2, margin, lat_t, half_sq):
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, lat_t, cnt, open_pts):
-    """``cnt[q]``: how many of the points ``base[:n_pt]`` (projections on the three normals) lie in
-    the cell (half-widths ``h``) when moved by position ``q``'s offsets ``(d0, d1, d2)[q]``.
+def _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, lat_t, weight, cnt, open_pts):
+    """``cnt[q]``: the total ``weight`` of the points ``base[:n_pt]`` (projections on the three
+    normals) that lie in the cell (half-widths ``h``) when moved by position ``q``'s offsets
+    ``(d0, d1, d2)[q]``.
 
     Points inside (or beyond a side) by more than the positions' reach along each normal
     (``lat_t``, with a hair of slack) are so at every position and counted once: this count took
@@ -557,7 +571,7 @@ def _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, lat_t, cnt, open_pts):
         a1 = abs(base[i, 1])
         a2 = abs(base[i, 2])
         if (a0 + lat_t[0] <= h0) & (a1 + lat_t[1] <= h1) & (a2 + lat_t[2] <= h2):
-            n_in += 1.0
+            n_in += weight[i]
         elif not ((a0 - lat_t[0] > h0) | (a1 - lat_t[1] > h1) | (a2 - lat_t[2] > h2)):
             open_pts[n_open] = i
             n_open += 1
@@ -568,6 +582,7 @@ def _count_inside(base, n_pt, d0, d1, d2, h0, h1, h2, lat_t, cnt, open_pts):
         b0 = base[i, 0]
         b1 = base[i, 1]
         b2 = base[i, 2]
+        wi = weight[i]
         for q in range(n_pos):
-            cnt[q] += 1.0 if (abs(b0 + d0[q]) <= h0) & (abs(b1 + d1[q]) <= h1) & (abs(b2 + d2[q]) <= h2) else 0.0
+            cnt[q] += wi if (abs(b0 + d0[q]) <= h0) & (abs(b1 + d1[q]) <= h1) & (abs(b2 + d2[q]) <= h2) else 0.0
     return n_in > 0.0 or n_open > 0

@@ -143,6 +143,10 @@ class RayFitter:
         models (:func:`analysis.depth.rayfit.fit_rays`); the calibration's estimate from its white
         image (:attr:`analysis.calibration.calibrate.Calibration.blur_px`), by default the ideal
         optics' 0.5 px.
+    response_slope : float
+        The pixel response within a micro-image that every fit and render models, as
+        :func:`analysis.depth.rayfit.fit_rays` takes it (the calibration's
+        :attr:`analysis.calibration.calibrate.Calibration.response_slope`; 0: flat).
     """
 
     image: np.ndarray
@@ -160,6 +164,7 @@ class RayFitter:
     rejected: Rejections | None = None
     saturation: float = 4095.0
     blur_px: float = DEFAULT_BLUR_PX
+    response_slope: float = 0.0
 
     @property
     def pitch_m(self) -> float:
@@ -185,7 +190,8 @@ class RayFitter:
         """
         settings = dict(background=self.background, aperture_per_lens_plane=self.aperture_per_lens_plane,
                         alpha_half_range=self.alpha_half_range, coarse=self.coarse, cache=self.cache,
-                        saturation=self.saturation, blur_px=self.blur_px)
+                        saturation=self.saturation, blur_px=self.blur_px,
+                        response_slope=self.response_slope)
         settings.update(options)
         if wide_fine is None:
             wide_fine = WIDE_FINE_GRID if fine is None else fine
@@ -219,7 +225,8 @@ class RayFitter:
         for start in range(0, len(fit), FIT_CHUNK):  # in particle order, as one call would add them
             chunk = fit.take(np.arange(start, min(start + FIT_CHUNK, len(fit))))
             render_fits(self.table, chunk, aperture_per_lens_plane=self.aperture_per_lens_plane, out=out,
-                        cache=self.cache, blur_px=self.blur_px, points=points)
+                        cache=self.cache, blur_px=self.blur_px,
+                        response_slope=self.response_slope, points=points)
         return out
 
     @property

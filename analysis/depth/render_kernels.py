@@ -33,15 +33,28 @@ def sample_values(flat, pixel_index, weight, u_m, v_m, ids, black_level, saturat
         uv[k, 1] = v_m[j]
 
 
+@numba.njit(cache=True, inline="always", fastmath=FASTMATH)
+def point_response(ux, uy, k):
+    """The pixel response to the light of aperture point ``(ux, uy)``, ``exp(k |u|^2)`` with
+    ``k = Cells.response_k``, relative to the micro-image centre's."""
+    return np.exp(k * (ux * ux + uy * uy))
+
+
 @numba.njit(cache=True, fastmath=FASTMATH)
 def lit_fraction(u0, v0, cx, cy, sx, sy, c, cells, sub):
     """Fraction of a pixel (aperture point ``(u0, v0)`` behind the lens centred at ``(cx, cy)``)
     lit by a point at ``(sx, sy)`` with ``c = 1 - 1/alpha``, over the points ``sub`` that stand
     for its blurred area. Relative to the part of the pixel that sees any aperture, because the
-    devignetted value is light per unit of the white image, which is lit over that same part."""
-    normals, half_sq, neigh_u, neigh_s, r_ap2, _ = cells
+    devignetted value is light per unit of the white image, which is lit over that same part.
+
+    Each point counts by the pixel response to the light of the aperture point it sees,
+    ``exp(response_k |u|^2)`` (``cells.response_k``; 0: alike), in the lit part and in the whole
+    alike: the camera weighs the light of each ray by its angle, in the white image as in the
+    exposure, before the blur spreads it. Under a wide blur near the rim a pixel's points see
+    aperture points of very different response, and counting them alike biased depths by +2 %."""
+    normals, half_sq, neigh_u, neigh_s, r_ap2, _, resp_k = cells
     frac = 0.0
-    n_ap = 0
+    n_ap = 0.0
     ox = sx + c * u0 - cx
     oy = sy + c * v0 - cy
     for q in range(sub.shape[0]):
@@ -49,7 +62,8 @@ def lit_fraction(u0, v0, cx, cy, sx, sy, c, cells, sub):
         uy = v0 + sub[q, 1]
         qx = ox + c * sub[q, 0]
         qy = oy + c * sub[q, 1]
-        if ux * ux + uy * uy > r_ap2:
+        r2 = ux * ux + uy * uy
+        if r2 > r_ap2:
             # Blurred into the neighbouring micro-image (crosstalk): there it sees that lens's
             # aperture point, and is lit if its ray enters that lens.
             found = False
@@ -59,11 +73,13 @@ def lit_fraction(u0, v0, cx, cy, sx, sy, c, cells, sub):
                 if vx * vx + vy * vy <= r_ap2:
                     qx = sx + c * vx - cx - neigh_s[nb, 0]
                     qy = sy + c * vy - cy - neigh_s[nb, 1]
+                    r2 = vx * vx + vy * vy
                     found = True
                     break
             if not found:
                 continue
-        n_ap += 1
+        w = np.exp(resp_k * r2) if resp_k != 0.0 else 1.0  # point_response of the point it sees
+        n_ap += w
         inside = True
         for t in range(3):
             d = qx * normals[t, 0] + qy * normals[t, 1]
@@ -71,14 +87,14 @@ def lit_fraction(u0, v0, cx, cy, sx, sy, c, cells, sub):
                 inside = False
                 break
         if inside:
-            frac += 1.0
+            frac += w
     return frac / n_ap if n_ap > 0 else 0.0
 
 
 @numba.njit(cache=True, parallel=True, fastmath=FASTMATH)
 def render_samples(centres, sample_ptr, lens_ptr, uv, sx, sy, c, intensity, cells, sub, out):
     # Each particle writes only its own gathered samples, so particles run in parallel.
-    normals, half_sq, neigh_u, neigh_s, r_ap2, _ = cells
+    normals, half_sq, neigh_u, neigh_s, r_ap2, _, _ = cells
     s_max = 0.0
     for q in range(sub.shape[0]):
         s_max = max(s_max, np.sqrt(sub[q, 0] * sub[q, 0] + sub[q, 1] * sub[q, 1]))

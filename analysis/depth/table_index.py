@@ -68,11 +68,14 @@ class TableIndex:
         """Memory held (the lens ranges and the tree's copy of the lens centres, roughly)."""
         return int(self.start.nbytes + 3 * self.table.lens_xy_m.nbytes)
 
-    def cells(self, aperture_per_lens_plane: float) -> Cells:
+    def cells(self, aperture_per_lens_plane: float, response_slope: float = 0.0) -> Cells:
         """The cell geometry for the kernels; ``aperture_per_lens_plane`` as
-        :func:`analysis.depth.rayfit.aperture_per_lens_plane` gives it."""
+        :func:`analysis.depth.rayfit.aperture_per_lens_plane` gives it, ``response_slope`` (the
+        pixel response's ``ln`` per squared pixel of micro-image offset) as
+        :func:`analysis.depth.rayfit.fit_rays` takes it."""
         return Cells(self.normals, self.half_sq, self.neighbours * aperture_per_lens_plane, self.neighbours,
-                     self.table.aperture_radius_m ** 2 * (1 + 1e-9), self.pitch_m)
+                     self.table.aperture_radius_m ** 2 * (1 + 1e-9), self.pitch_m,
+                     float(response_slope) / self.u_per_px ** 2)
 
     def gather(self, sx: np.ndarray, sy: np.ndarray, reach: np.ndarray) -> Gathered:
         """The samples of the lenses within ``reach`` of each point ``(sx, sy)`` (lens-plane metres)."""
