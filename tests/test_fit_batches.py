@@ -11,7 +11,8 @@ from analysis.camera.model import CameraModel
 from analysis.lightfield.table import build_table_from_model
 from analysis.pipeline.tables import FIT_TABLE_RIM_PX
 from analysis.depth.deblend import seen_twice
-from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, pixel_footprint, render_fits
+from analysis.depth.rayfit import (RENDER_POINTS, FitGrid, RayFit, aperture_per_lens_plane, fit_rays, pixel_footprint,
+                                    render_fits)
 from analysis.depth.render_kernels import lit_fraction
 from analysis.depth.refine import COARSE_TEMPERATURE, FINE_GRID, WIDE_FINE_GRID, RayFitter
 from analysis.depth.table_index import TableIndex
@@ -55,7 +56,7 @@ def test_render_matches_the_model_sample_by_sample(scene):
     g = idx.gather(fit.sx_m, fit.sy_m, reach)
     lens_ptr, sample_ptr, ids, centres = g.lens_ptr, g.sample_ptr, g.ids, g.centres
     uv = idx.uv(ids)
-    sub = pixel_footprint(3, 0.5) * idx.u_per_px
+    sub = pixel_footprint(RENDER_POINTS, 0.5) * idx.u_per_px
     cells = idx.cells(ratio)
     expected = np.zeros(table.n_samples, dtype=np.float32)
     for p in range(len(fit)):

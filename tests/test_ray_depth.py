@@ -14,7 +14,8 @@ from analysis.lightfield.table import build_table_from_model
 from analysis.formats.particle_table import read_csv
 from analysis.pipeline.tables import FIT_TABLE_RIM_PX, get_table
 from analysis.cache import Cache
-from analysis.depth.rayfit import FitGrid, RayFit, SampleNoise, aperture_per_lens_plane, fit_rays, pixel_footprint
+from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, pixel_footprint
+from analysis.depth.sample_noise import SampleNoise
 from analysis.depth.candidate_kernels import censored_intensity
 from analysis.depth.rayfit_kernels import GridPass, _count_inside, _position_offsets, grid_costs
 from analysis.depth.render_kernels import lit_fraction

@@ -231,8 +231,9 @@ def test_the_late_pass_finds_blurred_particles_the_first_passes_missed(seed):
 def test_the_late_pass_keeps_blurred_particles_whose_pattern_the_noise_hides(seed, monkeypatch):
     """The late pass's new fits blurred over many pitches that fit well need not show a point's
     pattern within their lenses (:data:`analysis.pipeline.passes.THIN_PATTERN_PITCHES`): on these
-    crops of the blurred cloud that keeps 3-4 more real particles (asserted: 2), with one false one
-    more. Measured with the rule and with it turned off."""
+    crops of the blurred cloud that keeps 4-6 more real particles (asserted: 2), with one or two
+    false ones more (asserted: one per three real at most). Measured with the rule and with it
+    turned off."""
     from analysis.pipeline import passes
 
     exposure, calibration, columns, nn = _blurred_cloud(seed)
@@ -240,8 +241,11 @@ def test_the_late_pass_keeps_blurred_particles_whose_pattern_the_noise_hides(see
     with_rule = score(process(exposure, calibration, cache=cache).particles, columns, nn_mm=nn)
     monkeypatch.setattr(passes, "THIN_PATTERN_PITCHES", np.inf)
     without = score(process(exposure, calibration, cache=cache).particles, columns, nn_mm=nn)
-    assert with_rule.n_matched >= without.n_matched + 2, (with_rule, without)
-    assert with_rule.n_found - with_rule.n_matched <= without.n_found - without.n_matched + 1, (with_rule, without)
+    gained = with_rule.n_matched - without.n_matched
+    assert gained >= 2, (with_rule, without)
+    # A wrong particle is worse than a missing one: at most one false one more per three real ones.
+    assert with_rule.n_found - with_rule.n_matched <= without.n_found - without.n_matched + gained // 3, (
+        with_rule, without)
 
 
 def test_noise_weights_refit_the_blurred_particles_and_keep_every_one():
@@ -262,15 +266,12 @@ def test_noise_weights_refit_the_blurred_particles_and_keep_every_one():
     assert s_weighed.depth_abs_rms_over_nn <= s_plain.depth_abs_rms_over_nn
 
 
-@pytest.mark.xfail(strict=True, reason="known: ideal optics split a particle blurred over 11 pitches into two "
-                                       "fits (stop 41); passes once that is mended")
 def test_isolated_particles_blurred_over_eleven_pitches_are_not_split():
     """Nine particles 1.2 mm apart, blurred over 10-12 pitches, through ideal optics, noise-free:
-    nine found. Today the one at (0, -1.2) gets a second fit 0.43 mm nearer with a fifth of its
-    light and five times the others' misfit, which the line-of-sight tests keep (the pair explains
-    the pixels better than one fit). (With read and shot noise, seed 1, nine are found since the
-    fit models the pixel response the white image shows: a hair below flat there, by its noise.
-    Noise-free, the split remains.)"""
+    nine found. With renders of 3 x 3 points per pixel, the one at (0, -1.2) got a second fit
+    0.43 mm nearer with a fifth of its light and five times the others' misfit, which the
+    line-of-sight tests kept: the coarse render of its sub-pixel patches left light that a second
+    fit explained (the split particles of ideal optics)."""
     gx, gy = np.meshgrid([-1.2, 0.0, 1.2], [-1.2, 0.0, 1.2])
     grid = Particles(gx.ravel(), gy.ravel(), 56.0 + np.linspace(-0.2, 0.2, 9), np.full(9, 1500.0))
     result, truth, _ = _process(grid, noise=False)

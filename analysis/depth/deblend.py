@@ -17,7 +17,8 @@ from analysis.detection.curves import Peaks
 from analysis.lightfield.table import LightFieldTable
 
 from .quality import converges
-from .rayfit import RENDER_POINTS, FitGrid, RayFit, SampleNoise, pattern_overlap, points_per_side
+from .rayfit import RENDER_POINTS, FitGrid, RayFit, pattern_overlap, points_per_side
+from .sample_noise import SampleNoise
 from .refine import (FINE_GRID, FINE_TEMPERATURE, PROBE_FRACTION, PROBE_GRID, PROBE_HALF_RANGE, PROBE_RESIDUAL,
     SAME_DEPTH_SIGMAS, WIDE_FINE_GRID, WIDE_PROBE_GRID, RayFitter, accept, moved, outshines_misfit, replace_fits)
 

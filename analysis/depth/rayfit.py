@@ -34,6 +34,7 @@ from analysis.lightfield.table import LightFieldTable
 
 from analysis.depth import rayfit_kernels as kern
 from analysis.depth import render_kernels
+from .sample_noise import SampleNoise
 from .table_index import Gathered, TableIndex, table_index
 
 
@@ -135,38 +136,15 @@ DEFAULT_BLUR_PX = IDEAL_POINT_SPREAD_PX
 #: Footprint points per side of a render (:func:`render_fits`) under the ideal optics' blur
 #: (:func:`points_per_side`).
 RENDER_POINTS = 3
+#: ... and of the render that the detection passes over what the fits leave take off
+#: (``analysis.pipeline.passes``). Blurred over 11-13 pitches, a particle puts a patch under a pixel
+#: wide in each lens; 3 x 3 points count its share in ninths, and what such a render leaves of
+#: bright particles hides faint neighbours there.
+RESIDUAL_POINTS = 5
 
 #: The default passes of :func:`fit_rays` (the pipeline's own are in :mod:`analysis.depth.refine`).
 COARSE = FitGrid(depths=33, lateral_pitches=0.4, positions=3, pixel_points=1, temperature=1.0)
 FINE = FitGrid(depths=9, lateral_pitches=0.25, positions=3, pixel_points=3, temperature=0.5)
-
-
-@dataclass(frozen=True)
-class SampleNoise:
-    """One raw sample's noise variance, ``read + shot * signal`` (DN^2; signal in DN: the extended
-    light behind the sample times its white weight), as the exposure's samples show it
-    (:attr:`analysis.lightfield.samples.Samples.noise`), and the typical background level
-    (devignetted DN) at which a full-weight sample counts once.
-
-    The fit's samples are devignetted (divided by their white weight ``w``), so their noise grows as
-    ``1 / w``: each counts in proportion to its inverse variance, ``w^2 / (read + shot w level)``.
-    Its own light is left out of the variance: weights taken from the observed values favour the
-    samples that read low and doubled the depth errors on tuning frames, and weights from the
-    coarse pass's model were worse than these (stop 41).
-    """
-
-    read: float
-    shot: float
-    typical_level: float
-
-    def root_weights(self, weight: np.ndarray, level: np.ndarray) -> np.ndarray:
-        """Square roots of the samples' weights in the fit, for white weights ``weight`` and the
-        background ``level`` behind each (devignetted DN); all 1 without a noise model."""
-        typical = self.read + self.shot * max(self.typical_level, 0.0)
-        if not typical > 0.0:
-            return np.ones(np.shape(weight))
-        variance = self.read + self.shot * weight * np.maximum(level, 0.0)
-        return weight * np.sqrt(typical / np.maximum(variance, 1e-12 * typical))
 
 
 def background_per_sample(table: LightFieldTable, background: float | np.ndarray) -> np.ndarray:

@@ -78,7 +78,7 @@ class PipelineParams:
         it does nothing. Turn it off to measure out-of-surface motion from the pixels alone.
     weigh_noise
         The last refit of the strongly blurred particles (``sharpen``) weighs each sample by its
-        noise (:class:`analysis.depth.rayfit.SampleNoise`), not all alike. Off by default: it
+        noise (:class:`analysis.depth.sample_noise.SampleNoise`), not all alike. Off by default: it
         helps where the forward model matches the camera (depth error through ideal optics 14-27 %
         lower on tuning seed 27 and fresh seeds 70-71, with vignetting alone 3-19 % lower on
         fresh 70-71), but with every effect together it was mixed on tuning seed 27 (ball 3.8 ->

@@ -15,7 +15,7 @@ import numpy as np
 
 from analysis.depth.deblend import deblend
 from analysis.depth.quality import converges, patterned
-from analysis.depth.rayfit import RayFit
+from analysis.depth.rayfit import RESIDUAL_POINTS, RayFit
 from analysis.depth.refine import (PROBE_RESIDUAL, SAME_DEPTH_SIGMAS, RayFitter, inside, outshines_misfit, refine_peaks,
                                    residual_image)
 from analysis.depth.table_index import table_index
@@ -56,7 +56,7 @@ def look_again(fitter: RayFitter, table: LightFieldTable, background: Background
     """
     if len(peaks) == 0:
         return None
-    explained = fitter.render(fit)
+    explained = fitter.render(fit, points=RESIDUAL_POINTS)
     rs = select_samples(residual_image(fitter.image, fitter.table, explained), table, background=background,
                         noise_sigmas=params.noise_sigmas)  # the residual image (21 MB) goes before the stack
     # The fits so far touched much of the fit table (60-100 MB on a frame with many candidates):

@@ -62,10 +62,10 @@ from analysis.camera.model import IDEAL_POINT_SPREAD_PX, CameraModel
 from analysis.depth.deblend import deblend, refit_blurred, sharpen_blurred, split_shared
 from analysis.depth.prior import apply_depth_prior
 from analysis.depth.quality import FIT_RESIDUAL_SLACK, drop_extended, drop_misfits, patterned, too_close
-from analysis.depth.rayfit import (FitGrid, RayFit, SampleNoise, aperture_per_lens_plane, fit_rays, render_fits,
-                                   unexplained_light)
+from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
 from analysis.depth.refine import (COARSE_LATERAL_PITCHES, COARSE_TEMPERATURE, PROBE_RESIDUAL, SAME_DEPTH_SIGMAS,
                                    RayFitter, accept, inside, refine_peaks)
+from analysis.depth.sample_noise import SampleNoise
 from analysis.detection.curves import Peaks, Tracks
 from analysis.detection.rejections import Rejections
 from analysis.errors import CameraMismatchError, MetadataError
@@ -276,6 +276,11 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         if params.deblend and len(peaks):
             with clock.stage("sharpen"):
                 peaks, fit = sharpen_blurred(fitter, peaks, fit, noise)
+                # Refitted with the others' light off, a ghost can land on the particle beside it.
+                kept = fitter.unique_rows(peaks, fit, max_sigmas=SAME_DEPTH_SIGMAS)
+                gone = np.setdiff1d(np.arange(len(peaks)), kept)
+                fitter.reject(peaks.take(gone), fit.take(gone), "duplicate")
+                peaks, fit, quality = peaks.take(kept), fit.take(kept), {"leftover": share[kept]}
     if len(peaks) == 0:
         if len(tracks):
             warnings.append("particles were seen, but none is brightest inside the alpha range "
