@@ -83,10 +83,9 @@ class PipelineParams:
         lower on tuning seed 27 and fresh seeds 70-71, with vignetting alone 3-19 % lower on
         fresh 70-71), but with every effect together it was mixed on tuning seed 27 (ball 3.8 ->
         4.0 %, cloud 4.9 -> 4.1 % of NN) and worse on fresh off-focus balls 70-71 (pooled 3.1 ->
-        3.9 %). A wider blur and a pixel response falling toward the micro-image rims together
-        bias realistic depths (about +2 % of NN), which the model does not follow (likely: it
-        counts a pixel's blurred points alike), and the weights lean on the samples where that
-        bias is largest.
+        3.9 %). With the pixel response modelled (stop 42), which removed the +2.5 % depth bias of
+        the wider blur and the response together, it was still no better with every effect
+        (tuning 27-28: ball 27 3.7 -> 4.2 %, cloud 28 4.9 -> 5.3 %, the other two unchanged).
         It takes that refit 1.3-1.9x its time (tuning ball 27 and cloud 27).
     min_separation
         A prior of the physics: particles in a plasma repel one another, so none comes much closer
