@@ -18,9 +18,9 @@ from analysis.lightfield.table import LightFieldTable
 
 from .quality import converges
 from .rayfit import RENDER_POINTS, FitGrid, RayFit, pattern_overlap, points_per_side
-from .sample_noise import SampleNoise
 from .refine import (FINE_GRID, FINE_TEMPERATURE, PROBE_FRACTION, PROBE_GRID, PROBE_HALF_RANGE, PROBE_RESIDUAL,
     SAME_DEPTH_SIGMAS, WIDE_FINE_GRID, WIDE_PROBE_GRID, RayFitter, accept, moved, outshines_misfit, replace_fits)
+from .sample_noise import SampleNoise
 
 log = logging.getLogger(__name__)
 
@@ -164,7 +164,8 @@ def sharpen_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit,
     difference on realistic frames (tuning seeds 27-30, held-out 33-34: off-focus balls and clouds,
     all effects, 0.99-1.01x) and cost 2-3 % through ideal optics (under an untold 0.3 px blur it
     did 1.3 % better). Runs after every decision on which fits are particles, so it moves fits and
-    changes none of them.
+    changes none of them (:func:`analysis.pipeline.process.process` then merges fits it brought
+    onto one particle).
     With ``noise``, each sample counts by its inverse noise variance (:class:`SampleNoise`). On
     tuning seed 27 the off-focus ball's and the cloud's depth error through ideal optics fell
     2.6 -> 1.9 % and 2.5 -> 2.1 % of NN, with the wider blur alone 3.7 -> 3.0 % (ball); with every

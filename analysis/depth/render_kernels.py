@@ -78,7 +78,7 @@ def lit_fraction(u0, v0, cx, cy, sx, sy, c, cells, sub):
                     break
             if not found:
                 continue
-        w = np.exp(resp_k * r2) if resp_k != 0.0 else 1.0  # point_response of the point it sees
+        w = np.exp(resp_k * r2) if resp_k != 0.0 else 1.0  # the response to the aperture point it sees
         n_ap += w
         inside = True
         for t in range(3):

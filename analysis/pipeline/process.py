@@ -22,7 +22,7 @@ parameter object stored with every result::
               # converge to a point, and the final table's misfit limit (max_fit_residual)
     peaks   = sharpen_blurred(fitter, peaks, fit)         # analysis.depth.deblend: the blurred ones'
               # last estimate, weighed more sharply, pixels modelled as wide as the camera's blur; it moves
-              # fits and decides nothing
+              # fits, and fits it brings onto one particle are merged
     X, Y, Z = to_physical(peaks.x, peaks.y, peaks.alpha, grid, ...)  # analysis.camera.coordinates
 
 Each stage is also callable on its own; :func:`process` runs them all and :func:`process_many`
