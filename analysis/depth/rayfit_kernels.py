@@ -33,7 +33,7 @@ class Cells(NamedTuple):
     neigh_s: np.ndarray      # (6, 2) lens-plane offset of each neighbour
     r_ap2: float             # squared aperture radius (with a hair of slack)
     pitch: float             # lens pitch
-    response_k: float = 0.0  # the pixel response falls as exp(response_k |u|^2) with the aperture
+    response_k: float        # the pixel response falls as exp(response_k |u|^2) with the aperture
     #                          point u it sees (0: flat); see render_kernels.lit_fraction
 
 

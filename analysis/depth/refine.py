@@ -250,11 +250,17 @@ class RayFitter:
         is False (hypotheses of the stage, such as probes, rather than candidates). With
         ``max_sigmas``, fits merge only where their depths also differ by less than that many
         times their combined ``alpha_spread``."""
-        kept = self.unique_rows(peaks, fit, settled=settled, max_sigmas=max_sigmas)
-        if record:
-            gone = np.setdiff1d(np.arange(len(peaks)), kept)
-            self.reject(peaks.take(gone), fit.take(gone), "duplicate")
+        kept = (self.merge_rows(peaks, fit, settled=settled, max_sigmas=max_sigmas) if record
+                else self.unique_rows(peaks, fit, settled=settled, max_sigmas=max_sigmas))
         return peaks.take(kept), fit.take(kept)
+
+    def merge_rows(self, peaks: Peaks, fit: RayFit, *, settled: int = 0, max_sigmas: float = np.inf) -> np.ndarray:
+        """The rows :meth:`unique` keeps, in order, the others recorded as duplicates (for callers
+        that keep more columns row for row)."""
+        kept = self.unique_rows(peaks, fit, settled=settled, max_sigmas=max_sigmas)
+        gone = np.setdiff1d(np.arange(len(peaks)), kept)
+        self.reject(peaks.take(gone), fit.take(gone), "duplicate")
+        return kept
 
     def unique_rows(self, peaks: Peaks, fit: RayFit, *, settled: int = 0, max_sigmas: float = np.inf) -> np.ndarray:
         """The rows :meth:`unique` keeps, in order (nothing recorded)."""

@@ -277,9 +277,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
             with clock.stage("sharpen"):
                 peaks, fit = sharpen_blurred(fitter, peaks, fit, noise)
                 # Refitted with the others' light off, a ghost can land on the particle beside it.
-                kept = fitter.unique_rows(peaks, fit, max_sigmas=SAME_DEPTH_SIGMAS)
-                gone = np.setdiff1d(np.arange(len(peaks)), kept)
-                fitter.reject(peaks.take(gone), fit.take(gone), "duplicate")
+                kept = fitter.merge_rows(peaks, fit, max_sigmas=SAME_DEPTH_SIGMAS)
                 peaks, fit, quality = peaks.take(kept), fit.take(kept), {"leftover": share[kept]}
     if len(peaks) == 0:
         if len(tracks):
