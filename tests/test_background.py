@@ -12,6 +12,7 @@ from scipy.ndimage import median_filter
 from analysis.cache import Cache
 from analysis.calibration.cache import load_calibration
 from analysis.calibration.drift import LatticeDrift
+from analysis.errors import ParameterError
 from analysis.formats.exposure import read_exposure
 from analysis.calibration.calibrate import calibrate
 from analysis.camera.model import CameraModel
@@ -192,3 +193,42 @@ def test_released_pages_of_a_mapped_map_read_back_the_same(tmp_path):
     assert np.array_equal(mapped, data)  # read back from the file
     release_pages(data)  # in memory: nothing to do
     assert data[12] == 12.0
+
+
+def test_a_lower_cut_in_some_lenses_keeps_their_fainter_samples_and_no_others(faint_beside_a_reflection):
+    """``lens_sigmas``: in the lenses the particle lights, cut at one sigma, the samples it lifts
+    2-8 DN above the glow (under a sigma or so of its noise) pass many times more often than at
+    three; every other lens keeps exactly the samples of the three-sigma cut."""
+    clean, image, refocus, background = faint_beside_a_reflection
+    expected = clean.reshape(-1)[refocus.pixel_index]
+    lenses = np.zeros(refocus.n_lenses, dtype=bool)
+    lenses[refocus.lens[expected > 2.0]] = True
+    faint = np.flatnonzero((expected > 2.0) & (expected < 8.0))
+    three = select_samples(image, refocus, background=background, noise_sigmas=3.0)
+    mixed = select_samples(image, refocus, background=background, noise_sigmas=3.0,
+                           lens_sigmas=np.where(lenses, 1.0, 3.0))
+    kept_three, kept_mixed = np.isin(faint, three.ids).sum(), np.isin(faint, mixed.ids).sum()
+    assert faint.size > 50 and kept_mixed >= 0.2 * faint.size and kept_mixed > 4 * max(kept_three, 1)
+    inside = lenses[refocus.lens[mixed.ids]]
+    assert np.array_equal(mixed.ids[~inside], three.ids[~lenses[refocus.lens[three.ids]]])
+    with pytest.raises(ParameterError, match="lens_sigmas"):
+        select_samples(image, refocus, background=background, local=False, lens_sigmas=np.ones(refocus.n_lenses))
+    with pytest.raises(ParameterError, match="lens_sigmas"):
+        select_samples(image, refocus, background=background, lens_sigmas=np.ones(3))
+
+
+def test_the_residual_is_cut_lower_only_in_the_lenses_the_fits_reach(case):
+    from analysis.pipeline.passes import RESIDUAL_NOISE_SIGMAS, residual_cut
+
+    image, _, refocus, _ = case
+    residual = image.copy()
+    residual[500:520, 300:330] -= 1  # the light of a fit taken off
+    sigmas = residual_cut(refocus, image, residual, 3.0)
+    touched = np.zeros(image.shape, dtype=bool)
+    touched[500:520, 300:330] = True
+    reached = np.unique(refocus.lens[touched.reshape(-1)[refocus.pixel_index]])
+    assert reached.size > 3
+    assert np.all(sigmas[reached] == RESIDUAL_NOISE_SIGMAS)
+    assert np.sum(sigmas == RESIDUAL_NOISE_SIGMAS) == reached.size and np.all(np.delete(sigmas, reached) == 3.0)
+    assert residual_cut(refocus, image, residual, None) is None
+    assert residual_cut(refocus, image, residual, RESIDUAL_NOISE_SIGMAS) is None

@@ -91,7 +91,7 @@ def check_image(image: np.ndarray, table: LightFieldTable) -> np.ndarray:
 
 def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: float | None = None,
                    background: float | BackgroundMap | None = None, noise_sigmas: float | None = 3.0,
-                   local: bool = True) -> Samples:
+                   local: bool = True, lens_sigmas: np.ndarray | None = None) -> Samples:
     """Read the table's samples from a raw image, subtract the background, keep those above the noise.
 
     Parameters
@@ -115,6 +115,9 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
         (:func:`~analysis.lightfield.background.local_noise`); else, or with False, one model of
         the noise against the light behind the samples for the whole frame, which follows its
         brightest extended light and cuts harder over glow.
+    lens_sigmas : ndarray of shape (table.n_lenses,), optional
+        With each lens's own noise (a ``BackgroundMap`` and ``local``): the cut of each lens in its
+        noise sigmas, in place of ``noise_sigmas`` (which then sets only the frame's figures).
 
     Returns
     -------
@@ -134,6 +137,9 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
     levels = (background.per_sample(table) if isinstance(background, BackgroundMap)
               else np.full(table.n_samples, float(background), dtype=np.float32))
     sub_levels = levels[::stride][:values.size]
+    if lens_sigmas is not None and (noise_sigmas is None or not local or not isinstance(background, BackgroundMap)
+                                    or np.shape(lens_sigmas) != (table.n_lenses,)):
+        raise ParameterError("lens_sigmas needs noise_sigmas, local noise (a BackgroundMap) and one value per lens")
     if noise_sigmas is None:
         threshold, sigma, noise = -np.inf, float("nan"), (0.0, 0.0)
     else:
@@ -154,7 +160,8 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
         # of faint blurred particles (off-focus ball and cloud, seeds 1-2: 34 more found of 1100,
         # as many false).
         offset, spread = local_noise(image, table, levels).per_lens(table)
-        lens_threshold = (offset + float(noise_sigmas) * np.maximum(spread, _MIN_SIGMA_DN)).astype(np.float32)
+        sigmas = float(noise_sigmas) if lens_sigmas is None else np.asarray(lens_sigmas, dtype=np.float64)
+        lens_threshold = (offset + sigmas * np.maximum(spread, _MIN_SIGMA_DN)).astype(np.float32)
         threshold = float(np.median(lens_threshold))
     ids, values = kern.select_samples(flat, table.pixel_index, table.weight, float(black), levels,
                                       float(centre) if noise_sigmas is not None else -np.inf,

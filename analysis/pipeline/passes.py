@@ -36,6 +36,18 @@ log = logging.getLogger(__name__)
 #: reaches it (left-over light of an imperfectly modelled one: a fifth of it or less), or outshine
 #: their misfit (:func:`analysis.depth.refine.outshines_misfit`).
 NEW_FRACTION = 0.2
+#: In the late pass, where the found particles' light was taken off, the residual's samples are
+#: kept down to this many noise sigmas of their lens (elsewhere ``PipelineParams.noise_sigmas``, 3):
+#: a faint particle blurred over 10-14 pitches among brighter ones puts a few DN per pixel in each
+#: lens, under the usual cut, so its refocused spot and sub-aperture point held only the samples
+#: the noise lifted, and it made no candidate (tuning seeds 27-28, realistic clouds: 26 of 46
+#: missed particles had none). The stack averages the extra noise down where it sums the
+#: particle's light. Only the late pass: its fits are deblended, and explain their own light
+#: better. In the passes before deblending too, tuning seeds 27-28 (off-focus balls and clouds,
+#: every effect) found 1055 of 1100 instead of 1050 (1047 with the usual cut), but an ideal-optics
+#: test ball got a false fit on a blurred particle's line of sight. Cutting every lens so, not only
+#: those the fits reach, found 3 more for 1.28x the time of a ball's passes.
+RESIDUAL_NOISE_SIGMAS = 1.0
 #: The late pass's new fits blurred over at least this many lens pitches (radius) need not show a
 #: point's pattern within their lenses: a faint particle's light spread that thin leaves a pattern
 #: the noise swamps (on realistic tuning frames, the real ones the pass found there explained
@@ -48,17 +60,20 @@ THIN_PATTERN_RESIDUAL = 0.13
 
 def look_again(fitter: RayFitter, table: LightFieldTable, background: BackgroundMap, params: PipelineParams,
                alphas: np.ndarray, limits: tuple[float, float], threshold: float, peaks: Peaks, tracks: Tracks,
-               fit: RayFit, lens_noise: np.ndarray) -> tuple[Peaks, Tracks, RayFit] | None:
+               fit: RayFit, lens_noise: np.ndarray, *, low_cut: bool = False) -> tuple[Peaks, Tracks, RayFit] | None:
     """One more detection pass on the raw image with the found particles' light taken off.
 
     Crowded clusters: blobs of neighbours merge in the product images. Returns the particles with
-    the new ones added, or None when the pass finds none.
+    the new ones added, or None when the pass finds none. With ``low_cut``, the residual's samples
+    in the lenses the fits reach are cut at :data:`RESIDUAL_NOISE_SIGMAS`.
     """
     if len(peaks) == 0:
         return None
     explained = fitter.render(fit, points=RESIDUAL_POINTS)
-    rs = select_samples(residual_image(fitter.image, fitter.table, explained), table, background=background,
-                        noise_sigmas=params.noise_sigmas)  # the residual image (21 MB) goes before the stack
+    residual = residual_image(fitter.image, fitter.table, explained)
+    cut = residual_cut(table, fitter.image, residual, params.noise_sigmas) if low_cut else None
+    rs = select_samples(residual, table, background=background, noise_sigmas=params.noise_sigmas, lens_sigmas=cut)
+    del residual  # the residual image (21 MB) goes before the stack
     # The fits so far touched much of the fit table (60-100 MB on a frame with many candidates):
     # its pages go back while the stack is made, and are read in again from the file cache.
     release_table_pages(fitter.table, fitter.cache)
@@ -137,7 +152,8 @@ def late_pass(fitter: RayFitter, table: LightFieldTable, background: BackgroundM
     the exemption found 13 particles more of 2200, with one false particle more, none on a
     reflection; the pass with it 41 more, with 4 false more (10 of the 2098 found)."""
     n_tracks = len(tracks)
-    found = look_again(fitter, table, background, params, alphas, limits, threshold, peaks, tracks, fit, lens_noise)
+    found = look_again(fitter, table, background, params, alphas, limits, threshold, peaks, tracks, fit, lens_noise,
+                       low_cut=True)
     trim_heap()  # the residual stack, before the refits of every particle below
     if found is None:
         return peaks, tracks, fit
@@ -153,6 +169,20 @@ def late_pass(fitter: RayFitter, table: LightFieldTable, background: BackgroundM
     keep = np.setdiff1d(np.arange(len(both)), spread)
     peaks, fit = deblend(fitter, both.take(keep), both_fit.take(keep))
     return peaks, both_tracks, fit
+
+
+def residual_cut(table: LightFieldTable, image: np.ndarray, residual: np.ndarray,
+                 noise_sigmas: float | None) -> np.ndarray | None:
+    """The noise cut of each lens of ``table`` (sigmas) for the samples of ``residual``:
+    :data:`RESIDUAL_NOISE_SIGMAS` in the lenses with a pixel the fits' light was taken off (where
+    ``residual`` differs from ``image``), ``noise_sigmas`` in the others; None where the samples are
+    not cut (``noise_sigmas`` None) or the cut is not lower."""
+    if noise_sigmas is None or noise_sigmas <= RESIDUAL_NOISE_SIGMAS:
+        return None
+    changed = residual.reshape(-1)[table.pixel_index] != image.reshape(-1)[table.pixel_index]
+    sigmas = np.full(table.n_lenses, float(noise_sigmas), dtype=np.float32)
+    sigmas[table.lens[changed]] = RESIDUAL_NOISE_SIGMAS
+    return sigmas
 
 
 def above_noise(fitter: RayFitter, peaks: Peaks, lens_noise: np.ndarray, threshold: float, *,
