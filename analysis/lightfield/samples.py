@@ -117,7 +117,7 @@ def select_samples(image: np.ndarray, table: LightFieldTable, *, black_level: fl
         brightest extended light and cuts harder over glow.
     lens_sigmas : ndarray of shape (table.n_lenses,), optional
         With each lens's own noise (a ``BackgroundMap`` and ``local``): the cut of each lens in its
-        noise sigmas, in place of ``noise_sigmas`` (which then sets only the frame's figures).
+        noise sigmas, in place of ``noise_sigmas``.
 
     Returns
     -------

@@ -45,8 +45,8 @@ NEW_FRACTION = 0.2
 #: particle's light. Only the late pass: its fits are deblended, and explain their own light
 #: better. In the passes before deblending too, tuning seeds 27-28 (off-focus balls and clouds,
 #: every effect) found 1055 of 1100 instead of 1050 (1047 with the usual cut), but an ideal-optics
-#: test ball got a false fit on a blurred particle's line of sight. Cutting every lens so, not only
-#: those the fits reach, found 3 more for 1.28x the time of a ball's passes.
+#: test ball got a false fit on a blurred particle's line of sight. Cutting every lens so in every
+#: residual pass, not only those the fits reach, found 3 more for 1.28x the time of a ball's passes.
 RESIDUAL_NOISE_SIGMAS = 1.0
 #: The late pass's new fits blurred over at least this many lens pitches (radius) need not show a
 #: point's pattern within their lenses: a faint particle's light spread that thin leaves a pattern
