@@ -139,13 +139,20 @@ def pooled_rms(rows: list[dict], attr: str) -> float:
     return float(np.sqrt(sum(v * v * k for v, k in ok) / sum(k for _, k in ok)))
 
 
+def pairs(rows: list[dict]) -> str:
+    """Shadowing pairs with both partners found, of all, summed over ``rows`` ('-' without pairs)."""
+    total = sum(r["score"].pairs_total for r in rows)
+    return f"{sum(r['score'].pairs_separated for r in rows)}/{total}" if total else "-"
+
+
 def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[int], size: int) -> None:
     print(f"\nsensor {size} px, seeds {' '.join(map(str, seeds))}; recall, precision and errors in %; depth and "
           "lateral errors as % of the mean 3D nearest-neighbour distance (NN), pooled over seeds; true, found: "
-          "particles in view and found (sums over seeds); x ideal = pooled depth (fit) over the same scene's with ideal optics (the ideal case's; for all, scene's); bound = the Cramer-Rao bound of depth of an isolated particle of the scene (RMS over 12 of its particles blurred over 2 lens pitches or more: their depth and brightness, the case's blur and glow; analysis.simulation.bound), what no estimate from the pixels can beat; on refl. = false particles on a reflection (sum over seeds); time "
+          "particles in view and found (sums over seeds); x ideal = pooled depth (fit) over the same scene's with ideal optics (the ideal case's; for all, scene's); bound = the Cramer-Rao bound of depth of an isolated particle of the scene (RMS over 12 of its particles blurred over 2 lens pitches or more: their depth and brightness, the case's blur and glow; analysis.simulation.bound), what no estimate from the pixels can beat; pairs = shadowing pairs (true particles closer than 0.35 NN across: nearly on one line of sight) with both found, of all (sums over seeds); on refl. = false particles on a reflection (sum over seeds); time "
           "per exposure (calibration cached), peak memory of the worker.\n")
     head = (f"| {'case':12s} | {'true':>5s} | {'found':>5s} | {'recall':>9s} | {'precision':>9s} | {'depth fit':>9s} | {'abs dZ':>6s} | "
-            f"{'x ideal':>7s} | {'bound':>5s} | {'lateral':>7s} | {'on refl.':>8s} | {'time s':>9s} | {'peak MB':>7s} |")
+            f"{'x ideal':>7s} | {'bound':>5s} | {'lateral':>7s} | {'pairs':>9s} | {'on refl.':>8s} | {'time s':>9s} | "
+            f"{'peak MB':>7s} |")
     for scene in scenes:
         mine = [r for r in rows if r["scene"] == scene]
         if not mine:
@@ -174,6 +181,7 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
                   f"| {('-' if not np.isfinite(ratio) else f'{ratio:.2f}'):>7s} "
                   f"| {pct2(float(np.sqrt(np.nanmean([r['depth_bound_over_nn'] ** 2 for r in rs])))):>5s} "
                   f"| {pct(pooled_rms(rs, 'lateral_rms_over_nn')):>7s} "
+                  f"| {pairs(rs):>9s} "
                   f"| {sum(r['on_reflection'] for r in rs):8d} "
                   f"| {span([r['wall_s'] for r in rs], 1.0, 2):>9s} "
                   f"| {max(r['peak_rss_mb'] for r in rs):7.0f} |")

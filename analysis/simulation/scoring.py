@@ -44,7 +44,7 @@ class Score:
     ``depth_by_blur`` maps a bin label (:data:`BLUR_BINS`) to ``(count, absolute depth RMS over NN)``,
     ``recall_by_blur`` one (:data:`RECALL_BLUR_BINS`) to ``(true particles, matched ones)``.
     ``pairs_separated`` counts shadowing pairs (true particles closer laterally than
-    ``pair_lateral_mm``) whose two members both matched.
+    ``pair_lateral`` of NN, :func:`score`) whose two members both matched, of ``pairs_total``.
     """
 
     n_true: int
