@@ -62,8 +62,7 @@ def lit_fraction(u0, v0, cx, cy, sx, sy, c, cells, sub):
         uy = v0 + sub[q, 1]
         qx = ox + c * sub[q, 0]
         qy = oy + c * sub[q, 1]
-        r2 = ux * ux + uy * uy
-        if r2 > r_ap2:
+        if ux * ux + uy * uy > r_ap2:
             # Blurred into the neighbouring micro-image (crosstalk): there it sees that lens's
             # aperture point, and is lit if its ray enters that lens.
             found = False
@@ -73,12 +72,12 @@ def lit_fraction(u0, v0, cx, cy, sx, sy, c, cells, sub):
                 if vx * vx + vy * vy <= r_ap2:
                     qx = sx + c * vx - cx - neigh_s[nb, 0]
                     qy = sy + c * vy - cy - neigh_s[nb, 1]
-                    r2 = vx * vx + vy * vy
+                    ux, uy = vx, vy
                     found = True
                     break
             if not found:
                 continue
-        w = np.exp(resp_k * r2) if resp_k != 0.0 else 1.0  # the response to the aperture point it sees
+        w = point_response(ux, uy, resp_k) if resp_k != 0.0 else 1.0  # to the aperture point it sees
         n_ap += w
         inside = True
         for t in range(3):
