@@ -740,6 +740,34 @@ def test_a_blurred_particle_in_a_glints_light_is_kept_where_its_light_clearly_co
     assert len(kept) == 1
 
 
+@pytest.mark.parametrize("alpha, brightness", [(1.02, 300.0), (0.975, 600.0)])
+def test_light_even_within_its_lenses_is_dropped_as_extended_though_a_fit_explains_it(alpha, brightness):
+    """The same light per lens as a blurred particle's, but spread evenly over each micro-image
+    (light that does not converge, as a reflection's edge the background model misses): a fit
+    there explains most of the light around it, so its shares pass, yet neither its point pattern
+    nor the same fit spread over a pitch follows that light. It is dropped; the particle is kept."""
+    import dataclasses
+
+    from analysis.depth.quality import drop_extended, leftover_fraction
+    from analysis.detection.rejections import Rejections
+
+    model, table, s_hat, particle = _line_of_sight_scene([alpha], [brightness])
+    raw = particle.astype(np.float64).reshape(-1)
+    light = (raw[table.pixel_index] - table.black_level) / table.weight
+    per_lens = np.bincount(table.lens, light) / np.bincount(table.lens)
+    even = raw.copy()
+    even[table.pixel_index] = (table.black_level + per_lens[table.lens] * table.weight
+                               + np.random.default_rng(1).normal(0.0, 2.0, table.pixel_index.size))
+    even = np.clip(np.round(even), 0, 4095).astype(np.uint16).reshape(particle.shape)
+    for image, is_point in ((particle, True), (even, False)):
+        fitter, peaks, fit = _one_fit(model, table, s_hat, image, alpha)
+        fitter = dataclasses.replace(fitter, rejected=Rejections())
+        assert leftover_fraction(fitter, fit)[0] < 0.3  # the shares alone would keep it
+        kept, _, _ = drop_extended(fitter, peaks, fit)
+        assert len(kept) == int(is_point)
+        assert fitter.rejected.counts() == ({} if is_point else {"extended": 1})
+
+
 def test_pattern_overlap_tells_one_particle_fitted_twice_from_a_pair_on_its_line_of_sight():
     """Two fits of one particle blurred over 7 pitches, 0.0002 apart in alpha after the refits, light
     their lenses alike: a fainter one there, with little evidence of its own, is the other's light
