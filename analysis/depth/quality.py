@@ -137,10 +137,7 @@ def drop_extended(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, 
     if bad.size:
         bad = bad[_patterns(fitter, fit.take(bad), explained)[1] < NO_PATTERN]
     if bad.size:
-        fitter.reject(peaks.take(bad), fit.take(bad), "extended")
-        keep = np.setdiff1d(np.arange(len(fit)), bad)
-        peaks, fit = peaks.take(keep), fit.take(keep)
-        explained = fitter.render(fit)
+        peaks, fit, explained = _drop_extended_rows(fitter, peaks, fit, bad)
     share = leftover_fraction(fitter, fit, explained)
     for _ in range(EXTENDED_ROUNDS):
         bad = np.flatnonzero(share > EXTENDED_SHARE)
@@ -152,12 +149,18 @@ def drop_extended(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, 
             bad = bad[~converges(fitter, fit.take(bad), explained, clear=True)]
         if bad.size == 0:
             break
-        fitter.reject(peaks.take(bad), fit.take(bad), "extended")
-        keep = np.setdiff1d(np.arange(len(fit)), bad)
-        peaks, fit = peaks.take(keep), fit.take(keep)
-        explained = fitter.render(fit)
+        peaks, fit, explained = _drop_extended_rows(fitter, peaks, fit, bad)
         share = leftover_fraction(fitter, fit, explained)
     return peaks, fit, share
+
+
+def _drop_extended_rows(fitter: RayFitter, peaks: Peaks, fit: RayFit,
+                        rows: np.ndarray) -> tuple[Peaks, RayFit, np.ndarray]:
+    """``rows`` recorded as ``extended``; the other peaks and fits, and the light of those fits."""
+    fitter.reject(peaks.take(rows), fit.take(rows), "extended")
+    keep = np.setdiff1d(np.arange(len(fit)), rows)
+    peaks, fit = peaks.take(keep), fit.take(keep)
+    return peaks, fit, fitter.render(fit)
 
 
 def drop_misfits(fitter: RayFitter, peaks: Peaks, fit: RayFit, share: np.ndarray, *,
