@@ -131,9 +131,11 @@ def drop_extended(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, 
     (neither the point's nor the spread source's explains :data:`NO_PATTERN` of it) are dropped
     as ``extended``, whatever their shares."""
     explained = fitter.render(fit)
-    # The point's pattern first: the spread source's costs six renders more, for the few left.
-    bad = np.flatnonzero((_patterns(fitter, fit, explained, spread=False)[0] < NO_PATTERN)
-                         & (fitter.blur_radius_m(fit.alpha) >= fitter.pitch_m))
+    # The point's pattern first, of the blurred fits only: the spread source's costs six renders
+    # more, for the few left.
+    bad = np.flatnonzero(fitter.blur_radius_m(fit.alpha) >= fitter.pitch_m)
+    if bad.size:
+        bad = bad[_patterns(fitter, fit.take(bad), explained, spread=False)[0] < NO_PATTERN]
     if bad.size:
         bad = bad[_patterns(fitter, fit.take(bad), explained)[1] < NO_PATTERN]
     if bad.size:
