@@ -9,9 +9,9 @@ process it as the pipeline is (calibration cached, after a warm-up, in a fresh p
 recall, precision, depth error (linear fit and absolute) and lateral error in % of the mean 3D
 nearest-neighbour distance, the depth error over the ideal case's, the Cramér-Rao bound of depth
 (what the pixels of an isolated particle allow, :mod:`analysis.simulation.bound`), false particles
-on a reflection, time per exposure and peak memory; then the recall by the particles' blur diameter
-(each seed draws where its cluster lies, and so how many are strongly blurred). Today's pipeline
-is told none of the effects.
+on a reflection, time per exposure and peak memory (resident, and its anonymous part); then the
+recall by the particles' blur diameter (each seed draws where its cluster lies, and so how many
+are strongly blurred). Today's pipeline is told none of the effects.
 
 Usage::
 
@@ -152,7 +152,7 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
           "per exposure (calibration cached), peak memory of the worker.\n")
     head = (f"| {'case':12s} | {'true':>5s} | {'found':>5s} | {'recall':>9s} | {'precision':>9s} | {'depth fit':>9s} | {'abs dZ':>6s} | "
             f"{'x ideal':>7s} | {'bound':>5s} | {'lateral':>7s} | {'pairs':>9s} | {'on refl.':>8s} | {'time s':>9s} | "
-            f"{'peak MB':>7s} |")
+            f"{'peak MB':>7s} | {'anon MB':>7s} |")
     for scene in scenes:
         mine = [r for r in rows if r["scene"] == scene]
         if not mine:
@@ -184,7 +184,7 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
                   f"| {pairs(rs):>9s} "
                   f"| {sum(r['on_reflection'] for r in rs):8d} "
                   f"| {span([r['wall_s'] for r in rs], 1.0, 2):>9s} "
-                  f"| {max(r['peak_rss_mb'] for r in rs):7.0f} |")
+                  f"| {max(r['peak_rss_mb'] for r in rs):7.0f} | {max(r.get('peak_anon_mb', math.nan) for r in rs):7.0f} |")
         print()
         recall_by_blur(mine, cases)
     print("cases: ideal = the ideal camera; each effect alone at the typical F01's value (Realism.typical(), "
