@@ -232,39 +232,3 @@ def test_the_residual_is_cut_lower_only_in_the_lenses_the_fits_reach(case):
     assert np.sum(sigmas == RESIDUAL_NOISE_SIGMAS) == reached.size and np.all(np.delete(sigmas, reached) == 3.0)
     assert residual_cut(refocus, image, residual, None) is None
     assert residual_cut(refocus, image, residual, RESIDUAL_NOISE_SIGMAS) is None
-
-
-
-def test_the_background_follows_an_out_of_focus_band_within_each_micro_image():
-    """Behind each sample of a reflected band, the band's light at the same aperture point in the
-    neighbouring lenses, interpolated between their pixels: each lens's background is within 1 %
-    of the band's noise-free light. Taken at the neighbours' nearest pixels instead, it missed by
-    up to 8 % (a tenth of the lenses), in a pattern that follows the micro-image centres' sub-pixel
-    phase."""
-    meta = simulated_camera_metadata(size=512)
-    model = CameraModel.from_metadata(meta)
-    camera = CameraEffects.build(Realism.only("blur", "micro-images", "vignetting"), serial="A202160042")
-    white = WhiteImage.from_image("MOD_0001", render_white_image(model, seed=7, camera=camera), meta,
-                                  simulated_private_metadata())
-    cache = Cache()
-    calibration = calibrate(white)
-    refocus, fit = get_table(calibration, cache), get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
-    band = ExtendedSource(kind="band", z_mm=66.0, x_mm=0.0, y_mm=0.9, sigma_mm=0.2, level_dn=2000.0,
-                          angle_rad=0.02, amplitude=0.0, period_mm=2.5)
-    nothing = Particles(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
-    scene = dict(background_dn=40.0, chamber=ChamberLight(sources=(band,)), camera=camera)
-    light = render_exposure(model, nothing, seed=3, noise=False, **scene).astype(np.float64) - model.black_level
-    image = render_exposure(model, nothing, seed=3, **scene)
-    background = estimate_background(image, fit, noise_dn=background_and_noise(image, refocus)[1])
-    central = fit.u_m ** 2 + fit.v_m ** 2 <= (CENTRAL_FRACTION * fit.aperture_radius_m) ** 2
-
-    def lens_mean(values: np.ndarray) -> np.ndarray:
-        lens = fit.lens[central]
-        return np.bincount(lens, values[central], fit.n_lenses) / np.maximum(np.bincount(lens, minlength=fit.n_lenses), 1)
-
-    truth = lens_mean(light.reshape(-1)[fit.pixel_index])
-    got = lens_mean(background.per_sample(fit) * fit.weight)
-    band_lenses = truth > 10 * np.median(truth)
-    assert band_lenses.sum() > 500
-    relative = np.abs(got - truth)[band_lenses] / truth[band_lenses]
-    assert np.median(relative) < 0.008 and np.percentile(relative, 90) < 0.02

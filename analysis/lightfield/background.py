@@ -348,20 +348,16 @@ def _sorted_quantile(values, n, q):  # pragma: no cover - numba
 def _structured_background(flat, pixel_index, weight, u_m, v_m, start, lens_ij, lens_at, marked, black, u_per_px,
                            half, reach):  # pragma: no cover - numba
     # For every sample of a marked lens: the median over the lenses within `reach` lattice steps of
-    # their light at the same point of the aperture, taken as a median along j of medians along i
-    # (separable: 2 x 5 values instead of 25, and as sure to leave out a particle, which takes one
-    # lens, or two at a cell edge). Micro-image centres fall anywhere between pixels, so a
-    # neighbour's light at that aperture point lies between its pixels: interpolated (bilinear)
-    # from them. Taken at its pixel nearest to the point instead, it is off by up to half a pixel,
-    # a tenth of the aperture's radius: across an out-of-focus band's sharp image in each
-    # micro-image that missed the light by 3-5 % of the band, in a pattern that repeats with the
-    # centres' sub-pixel phase. Returns (sample ids, background), marked lenses' samples in table
-    # order.
+    # their samples at the same place in the micro-image (the same aperture point, to the pixel),
+    # taken as a median along j of medians along i (separable: 2 x 5 values instead of 25, and
+    # as sure to leave out a particle, which takes one lens, or two at a cell edge). Returns
+    # (sample ids, background), marked lenses' samples in table order.
     n_lens = start.size - 1
     side = 2 * half + 1
     n_j, n_i = lens_at.shape
-    # Lenses whose samples are needed: the marked ones' neighbourhoods.
+    # Lenses whose cells are needed (the marked ones' neighbourhoods), and whose row medians are.
     need = np.zeros(n_lens, dtype=np.bool_)
+    rows = np.zeros(n_lens, dtype=np.bool_)
     for k in range(n_lens):
         if marked[k]:
             for dj in range(-reach, reach + 1):
@@ -370,100 +366,93 @@ def _structured_background(flat, pixel_index, weight, u_m, v_m, start, lens_ij, 
                     i = lens_ij[k, 0] + di
                     if 0 <= j < n_j and 0 <= i < n_i and lens_at[j, i] >= 0:
                         need[lens_at[j, i]] = True
+                        if di == 0:
+                            rows[lens_at[j, i]] = True
     slot = np.full(n_lens, -1, dtype=np.int64)
     n_slots = 0
     for k in range(n_lens):
         if need[k]:
             slot[k] = n_slots
             n_slots += 1
-    # Each needed lens's devignetted samples on its pixel grid (side x side cells about the pixel
-    # nearest its centre; NaN where it has none), and where its centre lies in that grid.
+    # Each needed lens's samples by their place in the micro-image (a cell of a side x side grid
+    # centred on it; -1 outside), worked out once for the three passes below.
+    cell_of = np.empty(pixel_index.size, dtype=np.int16)
     cells = np.full((n_slots, side * side), np.nan, dtype=np.float32)
-    centre = np.zeros((n_slots, 2))
     for k in prange(n_lens):
         if slot[k] < 0:
             continue
         for j in range(start[k], start[k + 1]):
-            # The pixel's offset from the centre, in pixels, and its cell.
-            px = -u_m[j] / u_per_px
-            py = -v_m[j] / u_per_px
-            cx = int(np.floor(px + 0.5)) + half
-            cy = int(np.floor(py + 0.5)) + half
-            if j == start[k]:
-                centre[slot[k], 0] = cx - px
-                centre[slot[k], 1] = cy - py
+            cx = int(np.floor(-u_m[j] / u_per_px + 0.5)) + half
+            cy = int(np.floor(-v_m[j] / u_per_px + 0.5)) + half
+            cell_of[j] = -1
             if 0 <= cx < side and 0 <= cy < side:
+                cell_of[j] = cy * side + cx
                 cells[slot[k], cy * side + cx] = (np.float64(flat[pixel_index[j]]) - black) / max(
                     np.float64(weight[j]), 1e-6)
+    # Medians along i, per lens and cell: only at the cells that the marked lenses within reach
+    # along j look up (about half of a lens's cells).
+    along_i = np.full((n_slots, side * side), np.nan, dtype=np.float32)
+    for k in prange(n_lens):
+        if not rows[k]:
+            continue
+        want = np.zeros(side * side, dtype=np.bool_)
+        for dj in range(-reach, reach + 1):
+            jj = lens_ij[k, 1] + dj
+            if 0 <= jj < n_j and lens_at[jj, lens_ij[k, 0]] >= 0 and marked[lens_at[jj, lens_ij[k, 0]]]:
+                q = lens_at[jj, lens_ij[k, 0]]
+                for j in range(start[q], start[q + 1]):
+                    if cell_of[j] >= 0:
+                        want[cell_of[j]] = True
+        near = _slots_along(k, 1, 0, lens_ij, lens_at, slot, reach)
+        buf = np.empty(2 * reach + 1, dtype=np.float32)
+        for c in range(side * side):
+            if want[c]:
+                along_i[slot[k], c] = _median_of_cells(cells, near, c, buf)
     # Sample ids of the marked lenses, in table order, and where each lens's begin.
     first = np.zeros(n_lens + 1, dtype=np.int64)
     for k in range(n_lens):
         first[k + 1] = first[k] + (start[k + 1] - start[k] if marked[k] else 0)
     ids = np.empty(first[n_lens], dtype=np.int64)
     out = np.empty(first[n_lens], dtype=np.float32)
-    width = 2 * reach + 1
     for k in prange(n_lens):
         if not marked[k]:
             continue
-        # The neighbourhood's slots, row by row along i (-1 where there is no lens).
-        box = np.full((width, width), -1, dtype=np.int64)
-        for dj in range(-reach, reach + 1):
-            for di in range(-reach, reach + 1):
-                j = lens_ij[k, 1] + dj
-                i = lens_ij[k, 0] + di
-                if 0 <= j < n_j and 0 <= i < n_i and lens_at[j, i] >= 0:
-                    box[dj + reach, di + reach] = slot[lens_at[j, i]]
-        row = np.empty(width, dtype=np.float32)
-        rows = np.empty(width, dtype=np.float32)
+        near = _slots_along(k, 0, 1, lens_ij, lens_at, slot, reach)
+        buf = np.empty(2 * reach + 1, dtype=np.float32)
         for j in range(start[k], start[k + 1]):
             pos = first[k] + j - start[k]
             ids[pos] = j
-            px = -u_m[j] / u_per_px
-            py = -v_m[j] / u_per_px
-            m_rows = 0
-            for r in range(width):
-                m = 0
-                for c in range(width):
-                    if box[r, c] >= 0:
-                        v = _at_aperture_point(cells, centre, box[r, c], px, py, side)
-                        if not np.isnan(v):
-                            row[m] = v
-                            m += 1
-                if m > 0:
-                    rows[m_rows] = _median(row, m)
-                    m_rows += 1
-            out[pos] = _median(rows, m_rows) if m_rows > 0 else np.nan
+            out[pos] = _median_of_cells(along_i, near, cell_of[j], buf) if cell_of[j] >= 0 else np.nan
     return ids, out
 
 
 @njit(cache=True, inline="always")
-def _at_aperture_point(cells, centre, s, px, py, side):  # pragma: no cover - numba
-    # Lens slot s's light at offset (px, py) pixels from its centre: bilinear between its four
-    # pixels around that point, over those it has (NaN when those hold under half the weight).
-    x = centre[s, 0] + px
-    y = centre[s, 1] + py
-    x0 = int(np.floor(x))
-    y0 = int(np.floor(y))
-    fx = x - x0
-    fy = y - y0
-    total = 0.0
-    wsum = 0.0
-    for dy in range(2):
-        for dx in range(2):
-            cx = x0 + dx
-            cy = y0 + dy
-            if 0 <= cx < side and 0 <= cy < side:
-                v = cells[s, cy * side + cx]
-                if not np.isnan(v):
-                    w = (fx if dx else 1.0 - fx) * (fy if dy else 1.0 - fy)
-                    total += w * v
-                    wsum += w
-    return total / wsum if wsum >= 0.5 else np.nan
+def _slots_along(k, di, dj, lens_ij, lens_at, slot, reach):  # pragma: no cover - numba
+    # Slots of the lenses within `reach` steps of lens k along (di, dj) that exist (-1 past the end).
+    near = np.full(2 * reach + 1, -1, dtype=np.int64)
+    n_j, n_i = lens_at.shape
+    m = 0
+    for step in range(-reach, reach + 1):
+        i = lens_ij[k, 0] + step * di
+        j = lens_ij[k, 1] + step * dj
+        if 0 <= j < n_j and 0 <= i < n_i and lens_at[j, i] >= 0:
+            near[m] = slot[lens_at[j, i]]
+            m += 1
+    return near
 
 
 @njit(cache=True, inline="always")
-def _median(buf, m):  # pragma: no cover - numba
-    # Median of buf[:m] (m >= 1; reorders buf).
+def _median_of_cells(cells, near, c, buf):  # pragma: no cover - numba
+    # Median of cells[near[r], c] over the lenses listed in near (up to the first -1), NaN skipped;
+    # NaN when all are.
+    m = 0
+    for r in range(near.size):
+        if near[r] < 0:
+            break
+        v = cells[near[r], c]
+        if not np.isnan(v):
+            buf[m] = v
+            m += 1
     if m == 5:
         return median_of_5(buf[0], buf[1], buf[2], buf[3], buf[4])
-    return median_in_place(buf, m)
+    return median_in_place(buf, m) if m > 0 else np.nan
