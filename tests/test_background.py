@@ -232,3 +232,24 @@ def test_the_residual_is_cut_lower_only_in_the_lenses_the_fits_reach(case):
     assert np.sum(sigmas == RESIDUAL_NOISE_SIGMAS) == reached.size and np.all(np.delete(sigmas, reached) == 3.0)
     assert residual_cut(refocus, image, residual, None) is None
     assert residual_cut(refocus, image, residual, RESIDUAL_NOISE_SIGMAS) is None
+
+
+def test_particles_crowding_lenses_do_not_set_a_background_sample_by_sample():
+    """Nine bright particles blurred over 6.7 lens pitches, their disks overlapping: their spots
+    light a good part of each lens's samples and raise its median, but not its lower percentile,
+    which extended light raises with all the others. So no lens takes its background sample by
+    sample, whose medians over neighbouring lenses would take much of the light of the particles
+    blurred over many pitches (marked by their lens medians, 27 785 samples were)."""
+    meta = simulated_camera_metadata(size=512)
+    model = CameraModel.from_metadata(meta)
+    camera = CameraEffects.build(Realism.only("blur"), serial="A202160042")
+    white = WhiteImage.from_image("MOD_0001", render_white_image(model, seed=7, camera=camera), meta,
+                                  simulated_private_metadata())
+    cache = Cache()
+    calibration = calibrate(white)
+    refocus, fit = get_table(calibration, cache), get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
+    gx, gy = np.meshgrid([-0.4, 0.0, 0.4], [-0.4, 0.0, 0.4])
+    crowd = Particles(gx.ravel(), gy.ravel(), np.full(9, 57.5), np.full(9, 8000.0))
+    image = render_exposure(model, crowd, seed=3, background_dn=40.0, camera=camera)
+    background = estimate_background(image, fit, noise_dn=background_and_noise(image, refocus)[1])
+    assert background.pixels.size == 0
