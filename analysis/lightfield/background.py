@@ -213,9 +213,9 @@ def estimate_background(image: np.ndarray, table: LightFieldTable, *, noise_dn: 
     n_j, n_i = shape
     level, typical = _neighbour_median(medians, jj, ii, shape, neighbourhood)
     # Where extended light stands out, sample by sample, over the lenses around those. Judged by
-    # each lens's lower percentile: crowded particles' spots raise its median too (110 of the
-    # 400 particles of realistic cloud 27 sat in lenses so marked, off its reflections), and there the medians over lenses
-    # would take much of the light of the faint ones blurred over many pitches.
+    # each lens's lower percentile: crowded particles' spots raise its median too (110 of the 400
+    # particles of realistic cloud 27 sat in lenses so marked, off its reflections), and there the
+    # medians over lenses would take much of the light of the faint ones blurred over many pitches.
     low, low_typical = _neighbour_median(lows, jj, ii, shape, neighbourhood)
     structured = binary_dilation(low > low_typical + STRUCTURED_SIGMAS * max(noise_dn, 0.5),
                                  iterations=STRUCTURED_MARGIN_LENSES)
