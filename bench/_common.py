@@ -38,16 +38,20 @@ def peak_rss_mb(pid: int | str = "self") -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def _rss_anon_mb() -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("RssAnon:"):
-            return int(line.split()[1]) / 1024
-    return 0.0  # not Linux: no figure
+def _rss_anon_mb(pid: int | str) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("RssAnon:"):
+                return int(line.split()[1]) / 1024
+    except OSError:  # the process has ended
+        pass
+    return 0.0  # ended, or not Linux: no figure
 
 
 class AnonPeak:
-    """Peak of this process's anonymous resident memory (``RssAnon``), polled in a thread while
-    the block runs.
+    """Peak of a process's anonymous resident memory (``RssAnon``), polled in a thread while the
+    block runs; for a child process, as the bench's workers are: a process's own numba kernels hold
+    its GIL, so a thread of its own would miss their temporaries.
 
     The peak RSS also counts the shared libraries' pages the process has mapped, and how many those
     are depends on the page cache, not on the pipeline: numba's LLVM library alone maps 40 MB after
@@ -62,7 +66,8 @@ class AnonPeak:
     True
     """
 
-    def __init__(self, interval_s: float = 0.005) -> None:
+    def __init__(self, pid: int | str = "self", interval_s: float = 0.005) -> None:
+        self.pid = pid
         self.interval_s = interval_s
         self.peak_mb = 0.0
         self._stop = threading.Event()
@@ -70,7 +75,7 @@ class AnonPeak:
 
     def _poll(self) -> None:
         while True:
-            self.peak_mb = max(self.peak_mb, _rss_anon_mb())
+            self.peak_mb = max(self.peak_mb, _rss_anon_mb(self.pid))
             if self._stop.wait(self.interval_s):
                 return
 
@@ -81,7 +86,7 @@ class AnonPeak:
     def __exit__(self, *exc: object) -> None:
         self._stop.set()
         self._thread.join()
-        self.peak_mb = max(self.peak_mb, _rss_anon_mb())
+        self.peak_mb = max(self.peak_mb, _rss_anon_mb(self.pid))
 
 
 def check_free_disk(path: Path, needed_gb: float, what: str) -> None:

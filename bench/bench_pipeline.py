@@ -92,12 +92,6 @@ def prepare_case(work: Path, scenario: str, seed: int, size: int, centre_z: floa
 def measure_case(folder: Path, params: PipelineParams, repeat: int, table_out: Path | None = None) -> dict:
     """In this (fresh) process: load the cached calibration, warm up, time ``repeat`` runs, score
     (and write the particle table to ``table_out`` when given)."""
-    with AnonPeak() as anon:
-        row = _measure(folder, params, repeat, table_out)
-    return {**row, "peak_rss_mb": peak_rss_mb(), "peak_anon_mb": anon.peak_mb}
-
-
-def _measure(folder: Path, params: PipelineParams, repeat: int, table_out: Path | None) -> dict:
     t0 = time.perf_counter()
     warm_up()
     warm_s = time.perf_counter() - t0
@@ -125,7 +119,7 @@ def _measure(folder: Path, params: PipelineParams, repeat: int, table_out: Path 
     return {"score": s.to_dict(), "floor": depth_floor(truth, exposure.model.lattice, nn_mm=nn),
             "timings": result.timings, "wall_s": min(times), "first_s": first_s,
             "calibration_load_s": load_s, "warm_up_s": warm_s, "warnings": result.warnings,
-            "grid": [result.grid.width, result.grid.height]}
+            "grid": [result.grid.width, result.grid.height], "peak_rss_mb": peak_rss_mb()}
 
 
 def run_case(work: Path, scenario: str, seed: int, size: int, params_json: str, repeat: int,
@@ -136,13 +130,19 @@ def run_case(work: Path, scenario: str, seed: int, size: int, params_json: str, 
     shared disk; the next run builds them again in :func:`prepare_case`."""
     folder = prepare_case(work, scenario, seed, size, centre_z, simulate_args, tag)
     table = [] if table_out is None else ["--table-out", str(table_out)]
+    command = [sys.executable, __file__, "--measure", str(folder), "--params", params_json, "--repeat", str(repeat),
+               *table]
     try:
-        out = subprocess.run([sys.executable, __file__, "--measure", str(folder), "--params", params_json,
-                              "--repeat", str(repeat), *table], check=True, cwd=ROOT, capture_output=True, text=True)
+        worker = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        with AnonPeak(worker.pid) as anon:
+            stdout, stderr = worker.communicate()
+        if worker.returncode:
+            raise subprocess.CalledProcessError(worker.returncode, command, stdout, stderr)
     finally:
         if not keep_tables:
             shutil.rmtree(folder / "cache", ignore_errors=True)
-    row = json.loads(out.stdout.strip().splitlines()[-1])
+    row = json.loads(stdout.strip().splitlines()[-1])
+    row["peak_anon_mb"] = anon.peak_mb
     row["score"] = Score(**row["score"])
     row.update(scenario=scenario, seed=seed)
     return row
