@@ -24,28 +24,27 @@ def best_time(fn: Callable[[], object], repeat: int = 5, *, warmup: bool = False
     return min(times)
 
 
-def peak_rss_mb(pid: int | str = "self") -> float:
-    """Peak resident memory in MiB of a process (VmHWM: unlike ru_maxrss, a child's figure is its
-    own and not inherited from the parent across fork and exec)."""
+def _status_mb(pid: int | str, field: str) -> float | None:
+    """A memory field (``VmHWM``, ``RssAnon``, ...) of ``/proc/PID/status`` in MiB; None where the
+    process has ended or there is no ``/proc``."""
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
+            if line.startswith(f"{field}:"):
                 return int(line.split()[1]) / 1024
     except OSError:
         pass
+    return None
+
+
+def peak_rss_mb(pid: int | str = "self") -> float:
+    """Peak resident memory in MiB of a process (VmHWM: unlike ru_maxrss, a child's figure is its
+    own and not inherited from the parent across fork and exec)."""
+    peak = _status_mb(pid, "VmHWM")
+    if peak is not None:
+        return peak
     if pid != "self":
         return float("nan")
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
-
-def _rss_anon_mb(pid: int | str) -> float:
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("RssAnon:"):
-                return int(line.split()[1]) / 1024
-    except OSError:  # the process has ended
-        pass
-    return 0.0  # ended, or not Linux: no figure
 
 
 class AnonPeak:
@@ -75,7 +74,7 @@ class AnonPeak:
 
     def _poll(self) -> None:
         while True:
-            self.peak_mb = max(self.peak_mb, _rss_anon_mb(self.pid))
+            self.peak_mb = max(self.peak_mb, _status_mb(self.pid, "RssAnon") or 0.0)
             if self._stop.wait(self.interval_s):
                 return
 
@@ -86,7 +85,7 @@ class AnonPeak:
     def __exit__(self, *exc: object) -> None:
         self._stop.set()
         self._thread.join()
-        self.peak_mb = max(self.peak_mb, _rss_anon_mb(self.pid))
+        self.peak_mb = max(self.peak_mb, _status_mb(self.pid, "RssAnon") or 0.0)
 
 
 def check_free_disk(path: Path, needed_gb: float, what: str) -> None:

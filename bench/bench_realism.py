@@ -149,7 +149,8 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
     print(f"\nsensor {size} px, seeds {' '.join(map(str, seeds))}; recall, precision and errors in %; depth and "
           "lateral errors as % of the mean 3D nearest-neighbour distance (NN), pooled over seeds; true, found: "
           "particles in view and found (sums over seeds); x ideal = pooled depth (fit) over the same scene's with ideal optics (the ideal case's; for all, scene's); bound = the Cramer-Rao bound of depth of an isolated particle of the scene (RMS over 12 of its particles blurred over 2 lens pitches or more: their depth and brightness, the case's blur and glow; analysis.simulation.bound), what no estimate from the pixels can beat; pairs = shadowing pairs (true particles closer than 0.35 NN across: nearly on one line of sight) with both found, of all (sums over seeds); on refl. = false particles on a reflection (sum over seeds); time "
-          "per exposure (calibration cached), peak memory of the worker.\n")
+          "per exposure (calibration cached), peak memory of the worker (peak MB: resident; anon MB: its anonymous part, "
+          "what it allocates itself, without the shared libraries' pages, whose count follows the page cache).\n")
     head = (f"| {'case':12s} | {'true':>5s} | {'found':>5s} | {'recall':>9s} | {'precision':>9s} | {'depth fit':>9s} | {'abs dZ':>6s} | "
             f"{'x ideal':>7s} | {'bound':>5s} | {'lateral':>7s} | {'pairs':>9s} | {'on refl.':>8s} | {'time s':>9s} | "
             f"{'peak MB':>7s} | {'anon MB':>7s} |")
@@ -184,7 +185,7 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
                   f"| {pairs(rs):>9s} "
                   f"| {sum(r['on_reflection'] for r in rs):8d} "
                   f"| {span([r['wall_s'] for r in rs], 1.0, 2):>9s} "
-                  f"| {max(r['peak_rss_mb'] for r in rs):7.0f} | {max(r.get('peak_anon_mb', math.nan) for r in rs):7.0f} |")
+                  f"| {max(r['peak_rss_mb'] for r in rs):7.0f} | {max(r['peak_anon_mb'] for r in rs):7.0f} |")
         print()
         recall_by_blur(mine, cases)
     print("cases: ideal = the ideal camera; each effect alone at the typical F01's value (Realism.typical(), "
