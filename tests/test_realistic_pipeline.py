@@ -158,13 +158,16 @@ def test_a_compact_glint_far_in_front_of_the_particles_yields_no_particle():
                                                                result.alphas[-1])) <= margin + 1e-12)
 
 
-def _pairs_on_lines_of_sight(seed: int, partner_dn: float):
-    """Nine pairs on one line of sight each, 1-2 mm apart in depth, the bright one of 5000 DN and
-    its partner of ``partner_dn``, processed: the pairs, their score."""
+def _pairs_on_lines_of_sight(seed: int, partner_dn: float, *, centre_mm: float = 59.5,
+                             apart_mm: tuple[float, float] = (1.0, 2.0), in_front: bool = False):
+    """Nine pairs on one line of sight each, ``apart_mm`` apart in depth (the partner on either
+    side, or ``in_front``), the bright one of 5000 DN about ``centre_mm`` and its partner of
+    ``partner_dn``, processed: the pairs, their score."""
     gx, gy = np.meshgrid([-1.2, 0.0, 1.2], [-1.2, 0.0, 1.2])
     rng = np.random.default_rng(seed)
-    z1 = 59.5 + rng.uniform(-0.5, 0.5, gx.size)
-    z2 = z1 + rng.uniform(1.0, 2.0, gx.size) * rng.choice([-1, 1], gx.size)
+    z1 = centre_mm + rng.uniform(-0.5, 0.5, gx.size)
+    side = -1.0 if in_front else rng.choice([-1, 1], gx.size)
+    z2 = z1 + rng.uniform(*apart_mm, gx.size) * side
     x1, y1 = gx.ravel(), gy.ravel()
     pairs = Particles(np.r_[x1, x1 * z2 / z1], np.r_[y1, y1 * z2 / z1], np.r_[z1, z2],
                       np.r_[np.full(9, 5000.0), np.full(9, partner_dn)])
@@ -190,6 +193,15 @@ def test_a_partner_with_a_seventh_of_the_light_is_found_where_its_light_converge
     never a false one."""
     pairs, result, s = _pairs_on_lines_of_sight(4, 750.0)
     assert s.n_matched >= 14 and _all_real(result, pairs), s
+
+
+def test_a_faint_blurred_partner_is_found_where_its_light_converges_as_a_point_more_than_spread():
+    """Partners with 0.12 of the light, 2-3 mm in front (blurred over 8-10 pitches): blurred that
+    wide, a point's pattern and the same light spread over a pitch look alike, and real partners'
+    light follows the point only a little better (on realistic shadowing scenes 1.1-1.4 times).
+    Held to the 1.5 times asked of a fit on extended light, 14 of 18 were found."""
+    pairs, result, s = _pairs_on_lines_of_sight(4, 600.0, centre_mm=59.8, apart_mm=(2.0, 3.0), in_front=True)
+    assert s.n_matched >= 16 and _all_real(result, pairs), s
 
 
 def _blurred_cloud(seed: int) -> tuple[Exposure, Calibration, dict[str, np.ndarray], float, Particles]:

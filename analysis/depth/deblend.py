@@ -46,6 +46,16 @@ LINE_OF_SIGHT_PITCHES = 1.0
 #: dropped, 0.15); the two false ones they kept, 0.49 (on a reflection, 0.0018 in alpha in front
 #: of a particle 5.8 times brighter) and 0.53.
 SAME_PATTERN = 0.3
+#: A faint partner blurred over a pitch or more, with less evidence than a probe needs, shows its
+#: own light converging to a point where its point pattern explains this many times what the same
+#: fit spread over a pitch explains (:func:`analysis.depth.quality.converges`). Blurred over 4-6
+#: pitches the two patterns look alike: on the realistic shadowing scenes of tuning seeds 27-30
+#: and 94 the real partners that failed the extended-light test's 1.5 explained 1.1-1.43 times as
+#: much as points (found at their true depth, then dropped), the false partners that reached the
+#: test 1.4 at most, and these explained under 0.05 as points (the floor of
+#: :data:`analysis.depth.quality.EXTENDED_POINT_PATTERN` drops them); compact glints on lines of
+#: sight explain at most as much as points as spread (quality.py).
+PARTNER_POINT_OVER_SPREAD = 1.05
 #: A faint partner blurred less than a pitch, with less evidence than a probe needs, is a particle
 #: only if the pair explains the pixels this many times better than its brighter partner alone. On
 #: the realistic shadowing and layer scenes of seeds 1-8, 11-12, such real partners did 1.34-2.9
@@ -245,7 +255,7 @@ def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
     sharp = unproven & (fitter.blur_radius_m(fit.alpha[faint]) < fitter.pitch_m)
     if (unproven & ~sharp).any():
         rows = np.flatnonzero(unproven & ~sharp)
-        unproven[rows] = ~converges(fitter, fit.take(faint[rows]), explained)
+        unproven[rows] = ~converges(fitter, fit.take(faint[rows]), explained, over_spread=PARTNER_POINT_OVER_SPREAD)
     unproven &= ~sharp
     weak[faint[unproven]] = True
     gain = np.where(sharp, IN_FOCUS_PAIR_GAIN, 1.0)[~unproven]
