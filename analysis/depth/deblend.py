@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 from analysis.detection.curves import Peaks
 from analysis.lightfield.table import LightFieldTable
 
-from .quality import converges
+from .quality import EXTENDED_POINT_OVER_SPREAD, converges
 from .rayfit import RENDER_POINTS, FitGrid, RayFit, pattern_overlap, points_per_side
 from .refine import (FINE_GRID, FINE_TEMPERATURE, PROBE_FRACTION, PROBE_GRID, PROBE_HALF_RANGE, PROBE_RESIDUAL,
     SAME_DEPTH_SIGMAS, WIDE_FINE_GRID, WIDE_PROBE_GRID, RayFitter, accept, moved, outshines_misfit, replace_fits)
@@ -47,15 +47,20 @@ LINE_OF_SIGHT_PITCHES = 1.0
 #: of a particle 5.8 times brighter) and 0.53.
 SAME_PATTERN = 0.3
 #: A faint partner blurred over a pitch or more, with less evidence than a probe needs, shows its
-#: own light converging to a point where its point pattern explains this many times what the same
-#: fit spread over a pitch explains (:func:`analysis.depth.quality.converges`). Blurred over 4-6
-#: pitches the two patterns look alike: on the realistic shadowing scenes of tuning seeds 27-30
-#: and 94 the real partners that failed the extended-light test's 1.5 explained 1.1-1.43 times as
-#: much as points (found at their true depth, then dropped), the false partners that reached the
-#: test 1.4 at most, and these explained under 0.05 as points (the floor of
-#: :data:`analysis.depth.quality.EXTENDED_POINT_PATTERN` drops them); compact glints on lines of
-#: sight explain at most as much as points as spread (quality.py).
+#: own light converging to a point where its point pattern explains more than what the same fit
+#: spread over a pitch explains (:func:`analysis.depth.quality.converges`): by the extended-light
+#: test's :data:`~analysis.depth.quality.EXTENDED_POINT_OVER_SPREAD`, or by only this many times
+#: where its pattern is also distinct from the brighter one's (overlap under
+#: :data:`DISTINCT_PATTERN`), so that it cannot be that one's light seen twice. Blurred over 4-6
+#: pitches a point's pattern and the spread one look alike: on the realistic shadowing scenes of
+#: tuning seeds 27-30 and 94, the real partners that failed 1.5 explained 1.1-1.43 times as much
+#: as points (fitted at their true depth, then dropped), with overlaps of 0.000; compact glints on
+#: lines of sight explain at most as much as points as spread (quality.py). The one false partner
+#: that passed 1.05 on 26 tuning and fresh frames (ideal cloud 97: a particle blurred over 10
+#: pitches split in two on its line of sight, 0.0026 apart in alpha) overlapped its bright one 0.22.
 PARTNER_POINT_OVER_SPREAD = 1.05
+#: See :data:`PARTNER_POINT_OVER_SPREAD`.
+DISTINCT_PATTERN = 0.1
 #: A faint partner blurred less than a pitch, with less evidence than a probe needs, is a particle
 #: only if the pair explains the pixels this many times better than its brighter partner alone. On
 #: the realistic shadowing and layer scenes of seeds 1-8, 11-12, such real partners did 1.34-2.9
@@ -238,16 +243,17 @@ def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
     # Unproven, and lighting its lenses nearly as the brighter one does: the pixels cannot tell its
     # light from what a slightly wrong model leaves of the brighter one's (the tests below would
     # take that leftover for a point of its own).
-    alike = np.zeros(faint.size, dtype=bool)
+    overlap = np.zeros(faint.size)
     if unproven.any():
         rows = np.flatnonzero(unproven)
-        alike[rows] = pattern_overlap(fitter.table, fit.take(faint[rows]), fit.take(bright[rows]),
-                                      fitter.blur_radius_m(fit.alpha[faint[rows]]) + 0.5 * fitter.pitch_m,
-                                      aperture_per_lens_plane=fitter.aperture_per_lens_plane,
-                                      blur_px=fitter.blur_px, response_slope=fitter.response_slope,
-                                      cache=fitter.cache) > SAME_PATTERN
+        overlap[rows] = pattern_overlap(fitter.table, fit.take(faint[rows]), fit.take(bright[rows]),
+                                        fitter.blur_radius_m(fit.alpha[faint[rows]]) + 0.5 * fitter.pitch_m,
+                                        aperture_per_lens_plane=fitter.aperture_per_lens_plane,
+                                        blur_px=fitter.blur_px, response_slope=fitter.response_slope,
+                                        cache=fitter.cache)
+    alike = overlap > SAME_PATTERN
     weak[faint[alike]] = True
-    faint, bright, unproven = faint[~alike], bright[~alike], unproven[~alike]
+    faint, bright, unproven, overlap = faint[~alike], bright[~alike], unproven[~alike], overlap[~alike]
     explained = fitter.render(fit)  # the light of all fits, for both tests below
     # A fit blurred less than a pitch lights a lens or two evenly: no point pattern to follow.
     # Such an unproven one must instead explain the pixels, with its brighter partner, clearly
@@ -255,7 +261,9 @@ def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
     sharp = unproven & (fitter.blur_radius_m(fit.alpha[faint]) < fitter.pitch_m)
     if (unproven & ~sharp).any():
         rows = np.flatnonzero(unproven & ~sharp)
-        unproven[rows] = ~converges(fitter, fit.take(faint[rows]), explained, over_spread=PARTNER_POINT_OVER_SPREAD)
+        distinct = overlap[rows] < DISTINCT_PATTERN
+        unproven[rows] = ~converges(fitter, fit.take(faint[rows]), explained,
+                                    over_spread=np.where(distinct, PARTNER_POINT_OVER_SPREAD, EXTENDED_POINT_OVER_SPREAD))
     unproven &= ~sharp
     weak[faint[unproven]] = True
     gain = np.where(sharp, IN_FOCUS_PAIR_GAIN, 1.0)[~unproven]

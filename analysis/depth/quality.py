@@ -82,11 +82,11 @@ def leftover_fraction(fitter: RayFitter, fit: RayFit, explained: np.ndarray | No
 
 
 def converges(fitter: RayFitter, fit: RayFit, explained: np.ndarray, *, clear: bool = False,
-              over_spread: float = EXTENDED_POINT_OVER_SPREAD) -> np.ndarray:
+              over_spread: float | np.ndarray = EXTENDED_POINT_OVER_SPREAD) -> np.ndarray:
     """Fits (a mask) whose light within the lenses of their blur disk follows a point: their pattern
     (:func:`analysis.depth.rayfit.point_pattern`) explains more than :data:`EXTENDED_POINT_PATTERN`
-    of its variation, and ``over_spread`` times what the fit spread over a source one pitch across
-    explains; with ``clear``, also those whose pattern explains more than
+    of its variation, and ``over_spread`` (one value, or one per fit) times what the fit spread over
+    a source one pitch across explains; with ``clear``, also those whose pattern explains more than
     :data:`CLEAR_POINT_PATTERN` of it, whatever the spread source does. ``explained``: the light of
     all fits (:meth:`RayFitter.render`)."""
     point, spread = _patterns(fitter, fit, explained)
