@@ -65,7 +65,9 @@ def test_a_drifted_tables_weights_are_the_white_read_where_the_micro_images_move
     r = np.hypot(table.u_m, table.v_m) / table.aperture_radius_m
     rim = np.hypot(base.u_m, base.v_m) / base.aperture_radius_m > 0.8
     bilinear_error = float(np.sqrt(np.mean((between[rim] - moved[base.pixel_index[rim]]) ** 2)))
-    assert error < 0.02 and error < 0.5 * bilinear_error, (error, bilinear_error)
+    # From the white image's own pattern about the micro-image centres: 0.005 and 0.003 (the fitted
+    # profile moved with its six neighbours: 0.010 and 0.003).
+    assert error < 0.006 and error < 0.5 * bilinear_error, (error, bilinear_error)
     # The pixels are those a table built about the moved centres takes (but for a few at the
     # smallest weight); the pixels about the white image's centres are not.
     lattice = calibration.model.lattice
