@@ -109,9 +109,11 @@ def shifted_table(table: LightFieldTable, devignetting: np.ndarray, shift_px: np
     n = int(start[-1])
     pixel_index = np.empty(n, dtype=np.int32)
     u_m, v_m, weight = (np.empty(n, dtype=np.float32) for _ in range(3))
-    region = _regions(old, white.shape)
+    n = _regions_per_side(len(old))
+    region = _regions(old, white.shape, n)
     pattern = white_pattern(white, bad, old, gain, region, reach + float(np.abs(shift_px).max(initial=0.0)) + 1.0)
-    _moved_samples(white, bad, centres, shift_px, gain, steps_px, pattern, region, 1.0 / PATTERN_STEP_PX, reach,
+    near, share = _nearest_parts(old, white.shape, n)
+    _moved_samples(white, bad, centres, shift_px, gain, steps_px, pattern, near, share, 1.0 / PATTERN_STEP_PX, reach,
                    start, pixel_index, u_m, v_m, weight)
     lens = np.repeat(np.arange(table.n_lenses, dtype=np.int32), count)
     keep = weight >= min_weight  # as the table about the white image's centres leaves out the faintest
@@ -126,14 +128,33 @@ def shifted_table(table: LightFieldTable, devignetting: np.ndarray, shift_px: np
                                lens_xy_m=table.lens_xy_m + shift_px * m_per_px, uid=uuid.uuid4().hex)
 
 
-def _regions(centres: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """The part of the sensor of each lens centre: ``n`` by ``n`` parts, row by row, of at least
-    :data:`PATTERN_LENSES` lenses each and at most :data:`PATTERN_REGIONS` per side."""
-    n = int(np.clip(np.sqrt(len(centres) / PATTERN_LENSES), 1, PATTERN_REGIONS))
+def _regions_per_side(n_lenses: int) -> int:
+    """Parts of the sensor per side: of at least :data:`PATTERN_LENSES` lenses each, at most
+    :data:`PATTERN_REGIONS`."""
+    return int(np.clip(np.sqrt(n_lenses / PATTERN_LENSES), 1, PATTERN_REGIONS))
+
+
+def _regions(centres: np.ndarray, shape: tuple[int, int], n: int) -> np.ndarray:
+    """The part of the sensor of each lens centre (``n`` by ``n`` parts, row by row)."""
     h, w = shape
     ry = np.clip((centres[:, 1] * n / h).astype(np.int64), 0, n - 1)
     rx = np.clip((centres[:, 0] * n / w).astype(np.int64), 0, n - 1)
     return ry * n + rx
+
+
+def _nearest_parts(centres: np.ndarray, shape: tuple[int, int], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per lens centre, the four parts of the sensor whose middles surround it and their bilinear
+    shares (L, 4): the pattern changes smoothly across the field, not from part to part."""
+    h, w = shape
+    fx = np.clip(centres[:, 0] * n / w - 0.5, 0.0, n - 1.0)
+    fy = np.clip(centres[:, 1] * n / h - 0.5, 0.0, n - 1.0)
+    x0 = np.minimum(fx.astype(np.int64), max(n - 2, 0))
+    y0 = np.minimum(fy.astype(np.int64), max(n - 2, 0))
+    x1, y1 = np.minimum(x0 + 1, n - 1), np.minimum(y0 + 1, n - 1)
+    ax, ay = fx - x0, fy - y0
+    near = np.column_stack([y0 * n + x0, y0 * n + x1, y1 * n + x0, y1 * n + x1])
+    share = np.column_stack([(1 - ay) * (1 - ax), (1 - ay) * ax, ay * (1 - ax), ay * ax])
+    return near, share
 
 
 def white_pattern(white: np.ndarray, defects: np.ndarray, centres: np.ndarray, gain: np.ndarray,
@@ -276,11 +297,12 @@ def _count_samples(h, w, defects, centres, steps_px, reach):  # pragma: no cover
 
 
 @njit(cache=True, parallel=True)
-def _moved_samples(white, defects, centres, shift_px, gain, steps_px, pattern, region, per_step, reach,
+def _moved_samples(white, defects, centres, shift_px, gain, steps_px, pattern, near, share, per_step, reach,
                    start, pixel_index, offset_x, offset_y, weight):  # pragma: no cover - numba
     # Per lens, from start[lens] on, its samples in row-major order: pixel, minus the offset from the
     # moved centre (px), and the weight (white units): its white value plus the change of the white
-    # pattern of the lens's part of the sensor between its offsets from the moved and the old centre.
+    # pattern between its offsets from the moved and the old centre, the patterns of the four parts
+    # of the sensor about the lens (near[lens]) weighed by their shares.
     h, w = white.shape
     r = int(reach) + 2
     for lens in prange(centres.shape[0]):
@@ -298,7 +320,11 @@ def _moved_samples(white, defects, centres, shift_px, gain, steps_px, pattern, r
                 pixel_index[at] = row * w + col
                 offset_x[at] = -x
                 offset_y[at] = -y
-                part = pattern[region[lens]]
-                weight[at] = white[row, col] + gain[lens] * (_pattern_at(part, per_step, x, y)
-                                                             - _pattern_at(part, per_step, x + sx, y + sy))
+                change = 0.0
+                for k in range(4):
+                    if share[lens, k] > 0.0:
+                        part = pattern[near[lens, k]]
+                        change += share[lens, k] * (_pattern_at(part, per_step, x, y)
+                                                    - _pattern_at(part, per_step, x + sx, y + sy))
+                weight[at] = white[row, col] + gain[lens] * change
                 at += 1
