@@ -110,10 +110,10 @@ def shifted_table(table: LightFieldTable, devignetting: np.ndarray, shift_px: np
     n = int(start[-1])
     pixel_index = np.empty(n, dtype=np.int32)
     u_m, v_m, weight = (np.empty(n, dtype=np.float32) for _ in range(3))
-    n = _regions_per_side(len(old))
-    region = _regions(old, white.shape, n)
-    pattern = white_pattern(white, bad, old, gain, region, reach + float(np.abs(shift_px).max(initial=0.0)) + 1.0)
-    near, share = _nearest_parts(old, white.shape, n)
+    parts = _regions_per_side(len(old))
+    pattern = white_pattern(white, bad, old, gain, _regions(old, white.shape, parts),
+                            reach + float(np.abs(shift_px).max(initial=0.0)) + 1.0)
+    near, share = _nearest_parts(old, white.shape, parts)
     _moved_samples(white, bad, centres, shift_px, gain, steps_px, pattern, near, share, 1.0 / PATTERN_STEP_PX, reach,
                    start, pixel_index, u_m, v_m, weight)
     lens = np.repeat(np.arange(table.n_lenses, dtype=np.int32), count)
