@@ -133,7 +133,7 @@ def _mapped_again(table: LightFieldTable, path: Path, cache: Cache) -> LightFiel
 #: share their drifted table.
 DRIFT_STEP_PX = 0.01
 DRIFT_STEP_RAD = 4e-6
-#: Spacing (px) of the fine grid of the micro-image model that a drifted table moves.
+#: Spacing (px) of the fine grid of the micro-image model a drifted table scales to each lens's core.
 DRIFT_TEMPLATE_STEP_PX = 1.0 / 16.0
 
 
@@ -172,8 +172,9 @@ def drifted_fit_table(calibration: Calibration, cache: Cache, drift: LatticeDrif
 
 
 def drift_template(calibration: Calibration) -> MicroImageTemplate:
-    """The calibration's micro-image as :func:`analysis.lightfield.drifted_table.shifted_table` moves
-    it: its fitted profile, or without one the lattice's aperture image under the default blur."""
+    """The calibration's micro-image, to which :func:`analysis.lightfield.drifted_table.shifted_table`
+    scales each lens's core for its gain: its fitted profile, or without one the lattice's aperture
+    image under the default blur."""
     profile = calibration.profile
     if profile is None:
         blur, radius, rim = calibration.blur_px, calibration.model.optics.micro_image_radius_px, 1.0
