@@ -44,7 +44,8 @@ from analysis.formats.particle_table import read_csv  # noqa: E402
 from analysis.simulation.bound import position_bound  # noqa: E402
 from analysis.simulation.chamber import ChamberLight  # noqa: E402
 from analysis.simulation.realism import EFFECTS, IDEAL_BLUR_PX  # noqa: E402
-from analysis.simulation.scoring import RECALL_BLUR_BINS, blur_bin_label, false_on_reflection  # noqa: E402
+from analysis.simulation.scoring import (RECALL_BLUR_BINS, blur_bin_label, false_on_reflection,  # noqa: E402
+                                         floor_split)
 
 @dataclass(frozen=True)
 class Scene:
@@ -91,6 +92,7 @@ def run(work: Path, scene: Scene, case: str, seed: int, size: int, repeat: int, 
     model = read_exposure(folder / "IMG_0001.lfp").model
     row["on_reflection"] = false_on_reflection(found, truth, chamber, model, nn_mm=row["score"].nn_mm)
     row["depth_bound_over_nn"] = depth_bound(truth, doc, seed) / row["score"].nn_mm
+    row["floor_split"] = floor_split(found, truth, model.lattice, nn_mm=row["score"].nn_mm).to_dict()
     row.update(scene=scene.name, case=case)
     return row
 
@@ -139,6 +141,28 @@ def pooled_rms(rows: list[dict], attr: str) -> float:
     return float(np.sqrt(sum(v * v * k for v, k in ok) / sum(k for _, k in ok)))
 
 
+def split_sums(rows: list[dict]) -> dict[str, float]:
+    """The rows' :class:`analysis.simulation.scoring.FloorSplit` figures, summed over seeds."""
+    keys = ("n_one_lens", "one_lens_ss", "floor_ss", "n_rest", "rest_ss")
+    return {k: sum(r["floor_split"][k] for r in rows) for k in keys}
+
+
+def over_floor(rows: list[dict]) -> float:
+    """Pooled absolute depth error of the one-lens particles over their floor's (NaN without any)."""
+    t = split_sums(rows)
+    return math.sqrt(t["one_lens_ss"] / t["floor_ss"]) if t["n_one_lens"] and t["floor_ss"] > 0 else math.nan
+
+
+def rest_rms(rows: list[dict]) -> float:
+    """Pooled absolute depth error (mm) of the particles blurred over more than one lens."""
+    t = split_sums(rows)
+    return math.sqrt(t["rest_ss"] / t["n_rest"]) if t["n_rest"] else math.nan
+
+
+def ratio_text(v: float) -> str:
+    return "-" if not np.isfinite(v) else f"{v:.2f}"
+
+
 def pairs(rows: list[dict]) -> str:
     """Shadowing pairs with both partners found, of all, summed over ``rows`` ('-' without pairs)."""
     total = sum(r["score"].pairs_total for r in rows)
@@ -148,11 +172,11 @@ def pairs(rows: list[dict]) -> str:
 def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[int], size: int) -> None:
     print(f"\nsensor {size} px, seeds {' '.join(map(str, seeds))}; recall, precision and errors in %; depth and "
           "lateral errors as % of the mean 3D nearest-neighbour distance (NN), pooled over seeds; true, found: "
-          "particles in view and found (sums over seeds); x ideal = pooled depth (fit) over the same scene's with ideal optics (the ideal case's; for all, scene's); bound = the Cramer-Rao bound of depth of an isolated particle of the scene (RMS over 12 of its particles blurred over 2 lens pitches or more: their depth and brightness, the case's blur and glow; analysis.simulation.bound), what no estimate from the pixels can beat; pairs = shadowing pairs (true particles closer than 0.35 NN across: nearly on one line of sight) with both found, of all (sums over seeds); on refl. = false particles on a reflection (sum over seeds); time "
+          "particles in view and found (sums over seeds); x ideal = pooled depth (fit) over the same scene's with ideal optics (the ideal case's; for all, scene's); bound = the Cramer-Rao bound of depth of an isolated particle of the scene (RMS over 12 of its particles blurred over 2 lens pitches or more: their depth and brightness, the case's blur and glow; analysis.simulation.bound), what no estimate from the pixels can beat; 1-lens = matched particles whose light falls in one lens (sum over seeds), x floor = their pooled absolute depth error over the depth floor's (the best estimate from their pixels alone, analysis.simulation.scoring.depth_floor; target 1.2; below 1: a prior), rest x ideal = the pooled absolute depth error of the other matched particles over that of the ideal reference's (target 1.3); pairs = shadowing pairs (true particles closer than 0.35 NN across: nearly on one line of sight) with both found, of all (sums over seeds); on refl. = false particles on a reflection (sum over seeds); time "
           "per exposure (calibration cached), peak memory of the worker (peak MB: resident; anon MB: its anonymous part, "
           "what it allocates itself, without the shared libraries' pages, whose count follows the page cache).\n")
     head = (f"| {'case':12s} | {'true':>5s} | {'found':>5s} | {'recall':>9s} | {'precision':>9s} | {'depth fit':>9s} | {'abs dZ':>6s} | "
-            f"{'x ideal':>7s} | {'bound':>5s} | {'lateral':>7s} | {'pairs':>9s} | {'on refl.':>8s} | {'time s':>9s} | "
+            f"{'x ideal':>7s} | {'1-lens':>6s} | {'x floor':>7s} | {'rest x ideal':>12s} | {'bound':>5s} | {'lateral':>7s} | {'pairs':>9s} | {'on refl.':>8s} | {'time s':>9s} | "
             f"{'peak MB':>7s} | {'anon MB':>7s} |")
     for scene in scenes:
         mine = [r for r in rows if r["scene"] == scene]
@@ -168,6 +192,10 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
             ref = [r for r in mine if r["case"] == ("scene" if case == "all" else "ideal")]
             return pooled_rms(ref, "depth_fit_rms_over_nn") if ref and case != "scene" else math.nan
 
+        def reference_rest(case: str) -> float:
+            ref = [r for r in mine if r["case"] == ("scene" if case == "all" else "ideal")]
+            return rest_rms(ref) if ref and case != "scene" else math.nan
+
         for case in cases:
             rs = [r for r in mine if r["case"] == case]
             if not rs:
@@ -179,7 +207,9 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
                   f"| {span([r['score'].recall for r in rs]):>9s} "
                   f"| {span([r['score'].precision for r in rs]):>9s} | {pct(depth):>9s} "
                   f"| {pct(pooled_rms(rs, 'depth_abs_rms_over_nn')):>6s} "
-                  f"| {('-' if not np.isfinite(ratio) else f'{ratio:.2f}'):>7s} "
+                  f"| {ratio_text(ratio):>7s} "
+                  f"| {split_sums(rs)['n_one_lens']:6d} | {ratio_text(over_floor(rs)):>7s} "
+                  f"| {ratio_text(rest_rms(rs) / reference_rest(case)):>12s} "
                   f"| {pct2(float(np.sqrt(np.nanmean([r['depth_bound_over_nn'] ** 2 for r in rs])))):>5s} "
                   f"| {pct(pooled_rms(rs, 'lateral_rms_over_nn')):>7s} "
                   f"| {pairs(rs):>9s} "

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from analysis.simulation.scoring import depth_floor, pixel_limited_alpha, single_lens
+from analysis.simulation.scoring import depth_floor, floor_errors, floor_split, pixel_limited_alpha, single_lens
 from analysis.camera.model import CameraModel
 from analysis.simulation.scenarios import Particles
 from analysis.simulation.camera import simulated_camera_metadata
@@ -97,3 +97,20 @@ def test_depth_floor_is_the_error_of_the_best_estimate():
     assert abs(err[3]) > 0.5 * abs(truth["alpha"][3] - 1.0) * slope
     one_lens = (truth["alpha"][:2] - 1.0) * slope
     assert floor > np.sqrt(np.sum(one_lens**2) / 4)
+
+
+def test_floor_split_judges_one_lens_particles_by_their_floor_and_the_others_apart():
+    m = model()
+    truth, p = truth_of(m, [(0.6, 1.0, (0, 0)), (3.0, -1.0, (0, 0))])
+    truth.update(X=p.x_mm, Y=p.y_mm)
+    floor = floor_errors(truth, m.lattice)
+    assert floor[0] != 0.0 and floor[1] == 0.0  # the wide one is pinned
+    # Found: the one-lens particle twice as far from its truth as its best estimate, the wide one
+    # 0.01 mm off.
+    dz = np.array([-2.0 * floor[0], 0.01])
+    found = {"X": p.x_mm, "Y": p.y_mm, "Z": p.z_mm + dz}
+    s = floor_split(found, truth, m.lattice, nn_mm=10.0)
+    assert (s.n_one_lens, s.n_rest) == (1, 1)
+    assert np.isclose(s.floor_ss, floor[0] ** 2)
+    assert np.isclose(s.one_lens_ss, 4.0 * floor[0] ** 2)
+    assert np.isclose(s.rest_ss, 1e-4)

@@ -174,13 +174,60 @@ def depth_floor(truth: Mapping[str, np.ndarray], lattice: Lattice, *, nn_mm: flo
     exposure: a prior (:mod:`analysis.depth.prior`).
     """
     one = single_lens(truth, lattice)
+    err = floor_errors(truth, lattice)
+    return int(one.sum()), float(np.sqrt(np.mean(err**2)) / nn_mm)
+
+
+def floor_errors(truth: Mapping[str, np.ndarray], lattice: Lattice) -> np.ndarray:
+    """Per true particle, the depth error (mm, signed) of the best estimate from its pixels alone
+    (:func:`pixel_limited_alpha`); NaN for all where the truth spans no depth."""
     z = np.asarray(truth["Z"], float)
     alpha = np.asarray(truth["alpha"], float)
     if z.size < 2 or np.ptp(alpha) == 0:
-        return int(one.sum()), math.nan
+        return np.full(z.size, math.nan)
     slope = np.polyfit(alpha, z, 1)[0]  # mm per unit alpha, locally linear
-    err = (pixel_limited_alpha(truth, lattice) - alpha) * slope
-    return int(one.sum()), float(np.sqrt(np.mean(err**2)) / nn_mm)
+    return (pixel_limited_alpha(truth, lattice) - alpha) * slope
+
+
+@dataclass
+class FloorSplit:
+    """Matched particles' depth errors split where the floor applies: squared errors (mm^2) summed,
+    so that several exposures pool by adding.
+
+    ``one_lens_ss`` sums the squared ``|dZ|`` of the matched particles whose light falls in one
+    lens (:func:`single_lens`), ``floor_ss`` their floor's (:func:`floor_errors`): their ratio's
+    root is how far above the floor they are. ``rest_ss`` sums the other matched particles'.
+    """
+
+    n_one_lens: int
+    one_lens_ss: float
+    floor_ss: float
+    n_rest: int
+    rest_ss: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def floor_split(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], lattice: Lattice, *,
+                nn_mm: float | None = None, max_distance: float = 0.5) -> FloorSplit:
+    """The matched particles' absolute depth errors, one-lens particles (with their floor) apart
+    from the rest: the one-lens ones are judged against the floor, the others against ideal optics.
+
+    Parameters
+    ----------
+    found : mapping with columns ``X, Y, Z`` (mm)
+    truth : the simulator's truth (``X, Y, Z``, ``x, y``, ``alpha``, ``blur_pitches``)
+    lattice : Lattice
+        The exposure's micro-lens lattice.
+    """
+    rows, cols = match(found, truth, nn_mm=nn_mm, max_distance=max_distance)
+    dz = np.asarray(found["Z"], float)[rows] - np.asarray(truth["Z"], float)[cols]
+    one = single_lens(truth, lattice)[cols]
+    floor = floor_errors(truth, lattice)[cols]
+    return FloorSplit(n_one_lens=int(one.sum()), one_lens_ss=float(np.sum(dz[one] ** 2)),
+                      floor_ss=float(np.sum(floor[one] ** 2)), n_rest=int((~one).sum()),
+                      rest_ss=float(np.sum(dz[~one] ** 2)))
 
 
 def mean_nn_distance(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> float:
