@@ -66,7 +66,11 @@ SCENES = {s.name: s for s in [
     Scene("cloud", "cloud"),
 ]}
 
-CASES = ("ideal", *EFFECTS, "all")
+#: Bench cases beyond the effects: ``scene-bright`` is ``scene`` with the brightness spread of
+#: ``all`` (the same particles, as bright, through ideal optics): with it, ``all``'s depth is also
+#: set against a reference whose particles are as faint as its own, which measures the camera alone.
+REFERENCES = {"scene-bright": "scene,brightness"}
+CASES = ("ideal", *EFFECTS, *REFERENCES, "all")
 #: True particles per case whose depth bound is computed (an isolated particle's, so a sample does).
 BOUND_PARTICLES = 12
 
@@ -74,7 +78,7 @@ BOUND_PARTICLES = 12
 def simulate_args(case: str, blur_px: float | None = None) -> list[str]:
     """``plenodust simulate`` options of a case (``blur_px``: its optical blur instead of the case's own)."""
     blur = [] if blur_px is None else ["--blur-px", f"{blur_px:g}"]
-    return blur if case == "ideal" else ["--realism", case, *blur]
+    return blur if case == "ideal" else ["--realism", REFERENCES.get(case, case), *blur]
 
 
 def run(work: Path, scene: Scene, case: str, seed: int, size: int, repeat: int, keep_tables: bool = False,
@@ -172,11 +176,11 @@ def pairs(rows: list[dict]) -> str:
 def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[int], size: int) -> None:
     print(f"\nsensor {size} px, seeds {' '.join(map(str, seeds))}; recall, precision and errors in %; depth and "
           "lateral errors as % of the mean 3D nearest-neighbour distance (NN), pooled over seeds; true, found: "
-          "particles in view and found (sums over seeds); x ideal = pooled depth (fit) over the same scene's with ideal optics (the ideal case's; for all, scene's); bound = the Cramer-Rao bound of depth of an isolated particle of the scene (RMS over 12 of its particles blurred over 2 lens pitches or more: their depth and brightness, the case's blur and glow; analysis.simulation.bound), what no estimate from the pixels can beat; 1-lens = matched particles whose light falls in one lens (sum over seeds), x floor = their pooled absolute depth error over the depth floor's (the best estimate from their pixels alone, analysis.simulation.scoring.depth_floor; target 1.2; below 1: a prior), rest x ideal = the pooled absolute depth error of the other matched particles over that of the ideal reference's (target 1.3); pairs = shadowing pairs (true particles closer than 0.35 NN across: nearly on one line of sight) with both found, of all (sums over seeds); on refl. = false particles on a reflection (sum over seeds); time "
+          "particles in view and found (sums over seeds); x ideal = pooled depth (fit) over the same scene's with ideal optics (the ideal case's; for all, scene's); x bright = all's over scene-bright's (ideal optics, the particles as bright as all's: the 12x spread makes about a third of them fainter than any of scene's); bound = the Cramer-Rao bound of depth of an isolated particle of the scene (RMS over 12 of its particles blurred over 2 lens pitches or more: their depth and brightness, the case's blur and glow; analysis.simulation.bound), what no estimate from the pixels can beat; 1-lens = matched particles whose light falls in one lens (sum over seeds), x floor = their pooled absolute depth error over the depth floor's (the best estimate from their pixels alone, analysis.simulation.scoring.depth_floor; target 1.2; below 1: a prior), rest x ideal = the pooled absolute depth error of the other matched particles over that of the ideal reference's (target 1.3); pairs = shadowing pairs (true particles closer than 0.35 NN across: nearly on one line of sight) with both found, of all (sums over seeds); on refl. = false particles on a reflection (sum over seeds); time "
           "per exposure (calibration cached), peak memory of the worker (peak MB: resident; anon MB: its anonymous part, "
           "what it allocates itself, without the shared libraries' pages, whose count follows the page cache).\n")
     head = (f"| {'case':12s} | {'true':>5s} | {'found':>5s} | {'recall':>9s} | {'precision':>9s} | {'depth fit':>9s} | {'abs dZ':>6s} | "
-            f"{'x ideal':>7s} | {'1-lens':>6s} | {'x floor':>7s} | {'rest x ideal':>12s} | {'bound':>5s} | {'lateral':>7s} | {'pairs':>9s} | {'on refl.':>8s} | {'time s':>9s} | "
+            f"{'x ideal':>7s} | {'x bright':>8s} | {'1-lens':>6s} | {'x floor':>7s} | {'rest x ideal':>12s} | {'bound':>5s} | {'lateral':>7s} | {'pairs':>9s} | {'on refl.':>8s} | {'time s':>9s} | "
             f"{'peak MB':>7s} | {'anon MB':>7s} |")
     for scene in scenes:
         mine = [r for r in rows if r["scene"] == scene]
@@ -191,6 +195,11 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
             # 'all' draws the varied scene: its ideal-optics twin is 'scene' (same clusters).
             ref = [r for r in mine if r["case"] == ("scene" if case == "all" else "ideal")]
             return pooled_rms(ref, "depth_fit_rms_over_nn") if ref and case != "scene" else math.nan
+
+        def bright_reference(case: str) -> float:
+            # 'all' against ideal optics with its own brightness spread ('scene-bright'), if run.
+            ref = [r for r in mine if r["case"] == "scene-bright"]
+            return pooled_rms(ref, "depth_fit_rms_over_nn") if ref and case == "all" else math.nan
 
         def reference_rest(case: str) -> float:
             ref = [r for r in mine if r["case"] == ("scene" if case == "all" else "ideal")]
@@ -207,7 +216,7 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
                   f"| {span([r['score'].recall for r in rs]):>9s} "
                   f"| {span([r['score'].precision for r in rs]):>9s} | {pct(depth):>9s} "
                   f"| {pct(pooled_rms(rs, 'depth_abs_rms_over_nn')):>6s} "
-                  f"| {ratio_text(ratio):>7s} "
+                  f"| {ratio_text(ratio):>7s} | {ratio_text(depth / bright_reference(case)):>8s} "
                   f"| {split_sums(rs)['n_one_lens']:6d} | {ratio_text(over_floor(rs)):>7s} "
                   f"| {ratio_text(rest_rms(rs) / reference_rest(case)):>12s} "
                   f"| {pct2(float(np.sqrt(np.nanmean([r['depth_bound_over_nn'] ** 2 for r in rs])))):>5s} "
@@ -220,7 +229,8 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
         recall_by_blur(mine, cases)
     print("cases: ideal = the ideal camera; each effect alone at the typical F01's value (Realism.typical(), "
           "plenodust simulate --realism EFFECT); all = every effect (plenodust simulate --realism). 'scene' and "
-          "'all' draw the clusters' geometry afresh (the same for both): 'scene' is the ideal-optics reference of 'all'.")
+          "'all' draw the clusters' geometry afresh (the same for both): 'scene' is the ideal-optics reference of 'all', "
+          "'scene-bright' the same with all's brightness spread.")
 
 
 def recall_by_blur(rows: list[dict], cases: list[str]) -> None:
