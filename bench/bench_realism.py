@@ -151,16 +151,21 @@ def split_sums(rows: list[dict]) -> dict[str, float]:
     return {k: sum(r["floor_split"][k] for r in rows) for k in keys}
 
 
+def ratio(a: float, b: float) -> float:
+    """``a / b``, NaN where ``b`` is not a positive number (no reference, or none of its particles)."""
+    return a / b if np.isfinite(b) and b > 0 else math.nan
+
+
 def over_floor(rows: list[dict]) -> float:
     """Pooled absolute depth error of the one-lens particles over their floor's (NaN without any)."""
     t = split_sums(rows)
-    return math.sqrt(t["one_lens_ss"] / t["floor_ss"]) if t["n_one_lens"] and t["floor_ss"] > 0 else math.nan
+    return math.sqrt(ratio(t["one_lens_ss"], t["floor_ss"]))
 
 
 def rest_rms(rows: list[dict]) -> float:
-    """Pooled absolute depth error (mm) of the particles blurred over more than one lens."""
+    """Pooled absolute depth error (mm) of the particles blurred over more than one lens (NaN without any)."""
     t = split_sums(rows)
-    return math.sqrt(t["rest_ss"] / t["n_rest"]) if t["n_rest"] else math.nan
+    return math.sqrt(ratio(t["rest_ss"], t["n_rest"]))
 
 
 def ratio_text(v: float) -> str:
@@ -176,7 +181,7 @@ def pairs(rows: list[dict]) -> str:
 def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[int], size: int) -> None:
     print(f"\nsensor {size} px, seeds {' '.join(map(str, seeds))}; recall, precision and errors in %; depth and "
           "lateral errors as % of the mean 3D nearest-neighbour distance (NN), pooled over seeds; true, found: "
-          "particles in view and found (sums over seeds); x ideal = pooled depth (fit) over the same scene's with ideal optics (the ideal case's; for all, scene's); x bright = all's over scene-bright's (ideal optics, the particles as bright as all's: the 12x spread makes about a third of them fainter than any of scene's); bound = the Cramer-Rao bound of depth of an isolated particle of the scene (RMS over 12 of its particles blurred over 2 lens pitches or more: their depth and brightness, the case's blur and glow; analysis.simulation.bound), what no estimate from the pixels can beat; 1-lens = matched particles whose light falls in one lens (sum over seeds), x floor = their pooled absolute depth error over the depth floor's (the best estimate from their pixels alone, analysis.simulation.scoring.depth_floor; target 1.2; below 1: a prior), rest x ideal = the pooled absolute depth error of the other matched particles over that of the ideal reference's (target 1.3); pairs = shadowing pairs (true particles closer than 0.35 NN across: nearly on one line of sight) with both found, of all (sums over seeds); on refl. = false particles on a reflection (sum over seeds); time "
+          "particles in view and found (sums over seeds); x ideal = pooled depth (fit) over the same scene's with ideal optics (the ideal case's; for all and scene-bright, scene's); x bright = all's over scene-bright's (ideal optics, the particles as bright as all's: the 12x spread makes about a third of them fainter than any of scene's); bound = the Cramer-Rao bound of depth of an isolated particle of the scene (RMS over 12 of its particles blurred over 2 lens pitches or more: their depth and brightness, the case's blur and glow; analysis.simulation.bound), what no estimate from the pixels can beat; 1-lens = matched particles whose light falls in one lens (sum over seeds), x floor = their pooled absolute depth error over the depth floor's (the best estimate from their pixels alone, analysis.simulation.scoring.depth_floor; target 1.2; below 1: a prior), rest x ideal = the pooled absolute depth error of the other matched particles over that of the ideal reference's (target 1.3); pairs = shadowing pairs (true particles closer than 0.35 NN across: nearly on one line of sight) with both found, of all (sums over seeds); on refl. = false particles on a reflection (sum over seeds); time "
           "per exposure (calibration cached), peak memory of the worker (peak MB: resident; anon MB: its anonymous part, "
           "what it allocates itself, without the shared libraries' pages, whose count follows the page cache).\n")
     head = (f"| {'case':12s} | {'true':>5s} | {'found':>5s} | {'recall':>9s} | {'precision':>9s} | {'depth fit':>9s} | {'abs dZ':>6s} | "
@@ -191,34 +196,28 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
         print(f"{scene} ({s0.scenario}{where}; pipeline parameters {json.dumps(s0.params)})")
         print(head)
         print("|" + "|".join("-" * (len(c)) for c in head.split("|")[1:-1]) + "|")
-        def reference(case: str) -> float:
-            # 'all' draws the varied scene: its ideal-optics twin is 'scene' (same clusters).
-            ref = [r for r in mine if r["case"] == ("scene" if case == "all" else "ideal")]
-            return pooled_rms(ref, "depth_fit_rms_over_nn") if ref and case != "scene" else math.nan
+        def twin(case: str) -> list[dict]:
+            # The ideal-optics rows of the same clusters: 'all' and 'scene-bright' draw the varied
+            # scene, whose twin is 'scene'; the effects alone are the ideal case's.
+            of = {"scene": None, "all": "scene", "scene-bright": "scene"}.get(case, "ideal")
+            return [r for r in mine if r["case"] == of]
 
-        def bright_reference(case: str) -> float:
-            # 'all' against ideal optics with its own brightness spread ('scene-bright'), if run.
-            ref = [r for r in mine if r["case"] == "scene-bright"]
-            return pooled_rms(ref, "depth_fit_rms_over_nn") if ref and case == "all" else math.nan
-
-        def reference_rest(case: str) -> float:
-            ref = [r for r in mine if r["case"] == ("scene" if case == "all" else "ideal")]
-            return rest_rms(ref) if ref and case != "scene" else math.nan
+        def depth_over(rows: list[dict], ref: list[dict]) -> float:
+            return ratio(pooled_rms(rows, "depth_fit_rms_over_nn"), pooled_rms(ref, "depth_fit_rms_over_nn"))
 
         for case in cases:
             rs = [r for r in mine if r["case"] == case]
             if not rs:
                 continue
             depth = pooled_rms(rs, "depth_fit_rms_over_nn")
-            ref_depth = reference(case)
-            ratio = depth / ref_depth if np.isfinite(ref_depth) and ref_depth > 0 else math.nan
+            bright = [r for r in mine if r["case"] == "scene-bright"] if case == "all" else []
             print(f"| {case:12s} | {sum(r['score'].n_true for r in rs):5d} | {sum(r['score'].n_found for r in rs):5d} "
                   f"| {span([r['score'].recall for r in rs]):>9s} "
                   f"| {span([r['score'].precision for r in rs]):>9s} | {pct(depth):>9s} "
                   f"| {pct(pooled_rms(rs, 'depth_abs_rms_over_nn')):>6s} "
-                  f"| {ratio_text(ratio):>7s} | {ratio_text(depth / bright_reference(case)):>8s} "
+                  f"| {ratio_text(depth_over(rs, twin(case))):>7s} | {ratio_text(depth_over(rs, bright)):>8s} "
                   f"| {split_sums(rs)['n_one_lens']:6d} | {ratio_text(over_floor(rs)):>7s} "
-                  f"| {ratio_text(rest_rms(rs) / reference_rest(case)):>12s} "
+                  f"| {ratio_text(ratio(rest_rms(rs), rest_rms(twin(case)))):>12s} "
                   f"| {pct2(float(np.sqrt(np.nanmean([r['depth_bound_over_nn'] ** 2 for r in rs])))):>5s} "
                   f"| {pct(pooled_rms(rs, 'lateral_rms_over_nn')):>7s} "
                   f"| {pairs(rs):>9s} "
