@@ -175,6 +175,8 @@ def depth_floor(truth: Mapping[str, np.ndarray], lattice: Lattice, *, nn_mm: flo
     """
     one = single_lens(truth, lattice)
     err = floor_errors(truth, lattice)
+    if err.size == 0 or not np.isfinite(err).all():
+        return int(one.sum()), math.nan
     return int(one.sum()), float(np.sqrt(np.mean(err**2)) / nn_mm)
 
 
