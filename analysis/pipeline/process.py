@@ -276,9 +276,14 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         if params.deblend and len(peaks):
             with clock.stage("sharpen"):
                 peaks, fit = sharpen_blurred(fitter, peaks, fit, noise)
-                # Refitted with the others' light off, a ghost can land on the particle beside it.
+                # Refitted with the others' light off, a ghost can land on the particle beside it;
+                # and a fit held at its window's edge by light from beyond the range (a compact
+                # glint far out of focus) has its depth profile's vertex out there.
                 kept = fitter.merge_rows(peaks, fit, max_sigmas=SAME_DEPTH_SIGMAS)
-                peaks, fit, quality = peaks.take(kept), fit.take(kept), {"leftover": share[kept]}
+                peaks, fit, share = peaks.take(kept), fit.take(kept), share[kept]
+                within = (peaks.alpha >= limits[0]) & (peaks.alpha <= limits[1])
+                peaks, fit = inside(fitter, peaks, fit, limits)
+                quality = {"leftover": share[within]}
     if len(peaks) == 0:
         if len(tracks):
             warnings.append("particles were seen, but none is brightest inside the alpha range "
