@@ -158,6 +158,25 @@ def test_a_compact_glint_far_in_front_of_the_particles_yields_no_particle():
                                                                result.alphas[-1])) <= margin + 1e-12)
 
 
+def test_a_compact_glint_far_behind_a_cluster_does_not_set_the_range_and_yields_no_particle():
+    """A compact glint (0.09 mm) 6 mm behind 16 particles, within the survey's reach, fits as a point
+    there (fresh seed 108): taken as the range's end, it tiled into four false particles. It lies
+    far in depth from all the particles, so it is left out of the range and reported."""
+    gx, gy = np.meshgrid(np.linspace(-1.5, 1.5, 4), np.linspace(-1.5, 1.5, 4))
+    z = 59.5 + np.random.default_rng(3).uniform(-0.7, 0.7, gx.size)
+    grid = Particles(gx.ravel(), gy.ravel(), z, np.full(gx.size, 1500.0))
+    glint = ExtendedSource(kind="glint", z_mm=66.0, x_mm=0.5, y_mm=0.5, sigma_mm=0.09, level_dn=2300.0)
+    result, truth, model = _process(grid, chamber=ChamberLight(sources=(glint,)))
+    assert truth["X"].size == 16
+    s = score(result.particles, truth, nn_mm=mean_nn_distance(truth["X"], truth["Y"], truth["Z"]))
+    assert s.n_matched == 16 and _all_real(result, grid), s
+    lone = result.rejected["alpha"][result.rejected["reason"] == "apart"]
+    glint_alpha = float(model.optics.alpha_of_z(66.0))
+    assert lone.size == 1 and abs(lone[0] - glint_alpha) < 0.003
+    assert result.alphas[0] > glint_alpha + 0.01
+    assert any("left out of the range" in w for w in result.warnings)
+
+
 def _pairs_on_lines_of_sight(seed: int, partner_dn: float, *, centre_mm: float = 59.5,
                              apart_mm: tuple[float, float] = (1.0, 2.0), in_front: bool = False):
     """Nine pairs on one line of sight each, ``apart_mm`` apart in depth (the partner on either

@@ -64,7 +64,7 @@ from analysis.depth.prior import apply_depth_prior
 from analysis.depth.quality import FIT_RESIDUAL_SLACK, drop_extended, drop_misfits, patterned, too_close
 from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
 from analysis.depth.refine import (COARSE_LATERAL_PITCHES, COARSE_TEMPERATURE, PROBE_RESIDUAL, SAME_DEPTH_SIGMAS,
-                                   RayFitter, accept, inside, refine_peaks)
+                                   RayFitter, accept, inside, moved, refine_peaks)
 from analysis.depth.sample_noise import SampleNoise
 from analysis.detection.curves import Peaks, Tracks
 from analysis.detection.rejections import Rejections
@@ -79,7 +79,8 @@ from analysis.lightfield.drifted_table import shifted_table
 from analysis.lightfield.table import LightFieldTable
 
 from .candidates import locate, product_threshold
-from .depth_range import SURVEY_GRID, edge_maxima, fit_limits, lattice_step, range_of_peaks, survey_alphas
+from .depth_range import (LONE_GAP_STEPS, SURVEY_GRID, apart, edge_maxima, fit_limits, lattice_step,
+                          range_of_peaks, survey_alphas)
 from .params import PipelineParams
 from .passes import above_noise, late_pass, look_again
 from .result import Result
@@ -205,7 +206,13 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
     lens_noise = samples.variance_ratio(background.per_lens(fit_table))
     if not params.user_range:
         with clock.stage("survey"):
-            found = _survey(exposure.image, table, background, alphas, params, threshold, cache, fitter, lens_noise)
+            found, lone = _survey(exposure.image, table, background, alphas, params, threshold, cache, fitter,
+                                  lens_noise)
+        if lone.size:
+            warnings.append(f"{lone.size} point source(s) at alpha {', '.join(f'{a:.4f}' for a in lone)} lie far in "
+                            f"depth from all the others (over {LONE_GAP_STEPS:g} survey steps) and were left out of "
+                            "the range: a compact glint looks so, and so would a lone particle; give the alpha "
+                            "range to include them")
         if found is None:
             warnings.append(f"no particles found above the noise anywhere in alpha {alphas[0]:.4f} ... "
                             f"{alphas[-1]:.4f}; check the exposure and the threshold")
@@ -308,9 +315,10 @@ def _lattice_drift(exposure: Exposure, calibration: Calibration, cache: Cache, n
 
 def _survey(image: np.ndarray, table: LightFieldTable, background: BackgroundMap, survey: np.ndarray,
             params: PipelineParams, threshold: float, cache: Cache, fitter: RayFitter | None,
-            lens_noise: np.ndarray) -> np.ndarray | None:
-    """The fine stack's alphas from a coarse stack over the whole range (``survey``); None when it
-    shows no particle.
+            lens_noise: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """The fine stack's alphas from a coarse stack over the whole range (``survey``), None when it
+    shows no particle; and the alphas of the point fits left out of it as lying apart from the others
+    (:func:`analysis.pipeline.depth_range.apart`; recorded as ``apart``).
 
     Far from focus the shift-and-add lines a particle's samples up again on the lattice (ghosts at
     ``c +- pitch / (aperture metres per pixel)``, about 0.016 in alpha here), so only peaks whose
@@ -343,13 +351,17 @@ def _survey(image: np.ndarray, table: LightFieldTable, background: BackgroundMap
         # (a glint on the far side of focus, set as the range's end, brought 500 fits of ghosts of
         # real particles there: 3x the time, 9 particles fewer). Such a glint fits as a blurred
         # point; the light in its lenses shows that it is none.
-        _, fit = fitter.unique(*accept(fitter, peaks, fit, min(fitter.max_residual, PROBE_RESIDUAL),
-                                           record=False), record=False)
+        peaks, fit = fitter.unique(*accept(fitter, peaks, fit, min(fitter.max_residual, PROBE_RESIDUAL),
+                                               record=False), record=False)
         point = patterned(fitter, fit, fitter.render(fit))
         log.debug("survey: %d peaks over alpha %.4f ... %.4f, %d explained, %d of them as points", len(peaks),
                   survey[0], survey[-1], len(fit), point.sum())
-        alpha = fit.alpha[point]
-    return range_of_peaks(alpha, survey, n_slices=params.n_slices)
+        peaks, fit = moved(table.grid, peaks, fit).take(point), fit.take(point)
+        lone = apart(fit.alpha, survey)
+        fitter.reject(peaks.take(lone), fit.take(lone), "apart")
+        alpha = fit.alpha[~lone]
+        return range_of_peaks(alpha, survey, n_slices=params.n_slices), np.sort(fit.alpha[lone])
+    return range_of_peaks(alpha, survey, n_slices=params.n_slices), np.empty(0)
 
 
 def _separated(fitter: RayFitter, peaks: Peaks, fit: RayFit, grid: ImageGrid, coordinates: Calibration3D,
