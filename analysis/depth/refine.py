@@ -405,11 +405,16 @@ def inside(fitter: RayFitter, peaks: Peaks, fit: RayFit, limits: tuple[float, fl
     """Drop fits that left the alpha range ``(lo, hi)`` (the user's, or the one found from the
     exposure with a margin: :func:`analysis.pipeline.depth_range.fit_limits`): they found a particle
     of another range, or light that is none."""
+    ok = within_limits(fitter, peaks, fit, limits)
+    return (peaks, fit) if ok.all() else (peaks.take(ok), fit.take(ok))
+
+
+def within_limits(fitter: RayFitter, peaks: Peaks, fit: RayFit, limits: tuple[float, float]) -> np.ndarray:
+    """The fits (a mask) :func:`inside` keeps; the others recorded as ``outside_range``."""
     ok = (peaks.alpha >= limits[0]) & (peaks.alpha <= limits[1])
-    if ok.all():
-        return peaks, fit
-    fitter.reject(peaks.take(~ok), fit.take(~ok), "outside_range")
-    return peaks.take(ok), fit.take(ok)
+    if not ok.all():
+        fitter.reject(peaks.take(~ok), fit.take(~ok), "outside_range")
+    return ok
 
 
 def residual_image(image: np.ndarray, table: LightFieldTable, explained: np.ndarray) -> np.ndarray:

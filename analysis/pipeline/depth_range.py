@@ -75,6 +75,8 @@ def apart(alpha: np.ndarray, survey: np.ndarray) -> np.ndarray:
     next fit, with at least :data:`LONE_REST` fits left (a mask)."""
     alpha = np.asarray(alpha, dtype=np.float64)
     out = np.zeros(alpha.size, dtype=bool)
+    if alpha.size == 0:
+        return out
     order = np.argsort(alpha)
     group = np.r_[0, np.cumsum(np.diff(alpha[order]) > LONE_GAP_STEPS * float(survey[1] - survey[0]))]
     size = np.bincount(group)

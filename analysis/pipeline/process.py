@@ -64,7 +64,7 @@ from analysis.depth.prior import apply_depth_prior
 from analysis.depth.quality import FIT_RESIDUAL_SLACK, drop_extended, drop_misfits, patterned, too_close
 from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, render_fits, unexplained_light
 from analysis.depth.refine import (COARSE_LATERAL_PITCHES, COARSE_TEMPERATURE, PROBE_RESIDUAL, SAME_DEPTH_SIGMAS,
-                                   RayFitter, accept, inside, moved, refine_peaks)
+                                   RayFitter, accept, inside, moved, refine_peaks, within_limits)
 from analysis.depth.sample_noise import SampleNoise
 from analysis.detection.curves import Peaks, Tracks
 from analysis.detection.rejections import Rejections
@@ -287,10 +287,8 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                 # and a fit held at its window's edge by light from beyond the range (a compact
                 # glint far out of focus) has its depth profile's vertex out there.
                 kept = fitter.merge_rows(peaks, fit, max_sigmas=SAME_DEPTH_SIGMAS)
-                peaks, fit, share = peaks.take(kept), fit.take(kept), share[kept]
-                within = (peaks.alpha >= limits[0]) & (peaks.alpha <= limits[1])
-                peaks, fit = inside(fitter, peaks, fit, limits)
-                quality = {"leftover": share[within]}
+                kept = kept[within_limits(fitter, peaks.take(kept), fit.take(kept), limits)]
+                peaks, fit, quality = peaks.take(kept), fit.take(kept), {"leftover": share[kept]}
     if len(peaks) == 0:
         if len(tracks):
             warnings.append("particles were seen, but none is brightest inside the alpha range "
@@ -342,7 +340,7 @@ def _survey(image: np.ndarray, table: LightFieldTable, background: BackgroundMap
     peaks, _ = locate(products(stack, sub, out=stack), survey, coarse, threshold=threshold)
     if fitter is not None:
         peaks = above_noise(fitter, peaks, lens_noise, threshold, record=False)  # not the particles' candidates
-    alpha = peaks.alpha
+    alpha, lone = peaks.alpha, np.empty(0)
     if fitter is not None and len(peaks):
         sx, sy = table.grid.to_lens_plane(peaks.x, peaks.y)
         fit = fitter.fit(sx, sy, peaks.alpha, fine=SURVEY_GRID, wide_fine=SURVEY_GRID)
@@ -357,11 +355,10 @@ def _survey(image: np.ndarray, table: LightFieldTable, background: BackgroundMap
         log.debug("survey: %d peaks over alpha %.4f ... %.4f, %d explained, %d of them as points", len(peaks),
                   survey[0], survey[-1], len(fit), point.sum())
         peaks, fit = moved(table.grid, peaks, fit).take(point), fit.take(point)
-        lone = apart(fit.alpha, survey)
-        fitter.reject(peaks.take(lone), fit.take(lone), "apart")
-        alpha = fit.alpha[~lone]
-        return range_of_peaks(alpha, survey, n_slices=params.n_slices), np.sort(fit.alpha[lone])
-    return range_of_peaks(alpha, survey, n_slices=params.n_slices), np.empty(0)
+        far = apart(fit.alpha, survey)
+        fitter.reject(peaks.take(far), fit.take(far), "apart")
+        alpha, lone = fit.alpha[~far], np.sort(fit.alpha[far])
+    return range_of_peaks(alpha, survey, n_slices=params.n_slices), lone
 
 
 def _separated(fitter: RayFitter, peaks: Peaks, fit: RayFit, grid: ImageGrid, coordinates: Calibration3D,
