@@ -602,7 +602,7 @@ def test_a_strongly_blurred_particles_point_pattern_is_rendered_as_wide_as_the_c
     """A particle blurred over 8-12 pitches lights a patch of about a pixel in each lens, which the
     camera's blur spreads over the pixels around it. The pattern test (:func:`point_pattern`) must
     render the point as wide: with the ideal optics' 3 x 3 pixel points under a 0.8 px blur, these
-    noise-free particles' points explained 0.52-0.69 of their lenses' light (0.65-0.82 under the
+    noise-free particles' points explained 0.52-0.69 of their lenses' light (0.49-0.82 under the
     ideal 0.5 px) and a source spread over a pitch explained more (ratio 0.64-0.88), so real
     particles far from focus looked like compact glints to the extended test."""
     from analysis.depth.rayfit import point_pattern
