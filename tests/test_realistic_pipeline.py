@@ -384,3 +384,36 @@ def test_a_pixel_response_falling_toward_the_rim_under_a_wide_blur_biases_no_dep
             assert np.hypot(found["X"][k] - x, found["Y"][k] - y) < 0.05
             errors.append(found["Z"][k] - z_true)
     assert abs(np.mean(errors)) < 0.008, np.mean(errors)  # mm
+
+
+def test_the_layers_prior_also_refits_particles_whose_pixels_pin_their_depth_as_well():
+    """A tilted layer near focus through a 0.8 px blur with the rim response and a 12x brightness
+    spread: a particle whose light spills from one lens into the next knows its depth about as
+    well as its neighbours' surface does, and weighing both must beat the pixels alone. Refitted
+    only where the prior was the narrower, such a particle of this crop stayed 0.125 NN off
+    (depth RMS 4.2 % of NN; with both, 6 % and 2.3 %)."""
+    from analysis.simulation.camera_effects import CameraEffects
+    from analysis.simulation.realism import Realism
+    from analysis.simulation.scoring import single_lens
+
+    meta = simulated_camera_metadata(size=SIZE)
+    model = CameraModel.from_metadata(meta)
+    private = simulated_private_metadata()
+    camera = CameraEffects.build(Realism(blur_px=0.8, rim_response=0.75), serial="A202160042")
+    calibration = calibrate(WhiteImage.from_image("MOD_0001", render_white_image(model, seed=101, camera=camera),
+                                                  meta, private))
+    particles = make_scenario("tilted-layer", 1, varied=True, brightness_spread=12.0).particles
+    image = render_exposure(model, particles, seed=1, background_dn=40.0, camera=camera)
+    truth = particle_truth(model, particles)
+    shown = in_view(model, truth)
+    columns = {"X": particles.x_mm[shown], "Y": particles.y_mm[shown], "Z": particles.z_mm[shown],
+               "x": truth.x_px[shown], "y": truth.y_px[shown], "blur_pitches": truth.blur_pitches[shown]}
+    nn = mean_nn_distance(columns["X"], columns["Y"], columns["Z"])
+    found = process(Exposure(image, meta, private), calibration, cache=Cache()).particles
+    rows, cols = match(found, columns, nn_mm=nn)
+    assert cols.size == shown.sum() >= 12
+    dz = (np.asarray(found["Z"])[rows] - columns["Z"][cols]) / nn
+    more_lenses = ~single_lens(columns, model.lattice)[cols]
+    assert more_lenses.sum() >= 10
+    assert np.sqrt(np.mean(dz**2)) < 0.03
+    assert np.max(np.abs(dz[more_lenses])) < 0.09

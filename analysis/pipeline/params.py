@@ -72,10 +72,10 @@ class PipelineParams:
         found), none on a reflection; it costs about 1.3x the time: turn it off where speed
         matters more.
     depth_prior
-        Where a particle's pixels leave its depth open (its light falls in one micro-lens) and its
-        neighbours lie on one surface, take the depth that surface predicts as a prior
-        (:func:`apply_depth_prior`, :mod:`analysis.depth.prior`); in a 3D crowd no surface fits and
-        it does nothing. Turn it off to measure out-of-surface motion from the pixels alone.
+        Where a particle's neighbours lie on one surface, take the depth that surface predicts as a
+        prior, weighed with the pixels (:func:`apply_depth_prior`, :mod:`analysis.depth.prior`): it
+        decides where they leave the depth open (the light falls in one micro-lens); in a 3D crowd
+        no surface fits and it does nothing. Turn it off to measure out-of-surface motion from the pixels alone.
     weigh_noise
         The last refit of the strongly blurred particles (``sharpen``) weighs each sample by its
         noise (:class:`analysis.depth.sample_noise.SampleNoise`), not all alike. Off by default: it

@@ -15,7 +15,7 @@ parameter object stored with every result::
     peaks   = deblend(fitter, peaks, fit)                 # analysis.depth.deblend: neighbours' light off
     peaks   = late_pass(fitter, ..., peaks, fit)          # analysis.pipeline.passes (--no-late-pass skips it): one
               # more detection pass on what the deblended fits leave, all deblended again with it
-    peaks   = apply_depth_prior(fitter, peaks, fit)       # analysis.depth.prior: one-lens particles
+    peaks   = apply_depth_prior(fitter, peaks, fit)       # analysis.depth.prior: particles on a surface
     peaks   = refit_blurred(fitter, peaks, fit)           # analysis.depth.deblend: blurred ones again,
               # with every neighbour's light as the stages before left it
     peaks   = drop_misfits(drop_extended(...))            # analysis.depth.quality: light that does not

@@ -102,7 +102,7 @@ def add_pipeline_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"a second maximum of a curve counts above this fraction (default {d.min_prominence})")
     g.add_argument("--no-depth-prior", action="store_true",
                    help="depth from each particle's own pixels only: no prior from neighbours on one surface "
-                        "for particles whose light falls in one micro-lens (their alpha_std stays wide)")
+                        "(particles whose light falls in one micro-lens keep a wide alpha_std)")
     g.add_argument("--late-pass", action=argparse.BooleanOptionalAction, default=d.late_pass,
                    help="one more detection pass after deblending: finds more of the faint particles blurred over "
                         "many pitches among brighter ones (realistic crowds: 1.5-2 %% more), at about 1.3x the time; "
