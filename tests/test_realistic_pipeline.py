@@ -357,11 +357,9 @@ def test_isolated_particles_blurred_over_eleven_pitches_are_not_split():
     assert s.n_matched == 9 and len(result) == 9, s
 
 
-def test_a_pixel_response_falling_toward_the_rim_under_a_wide_blur_biases_no_depth():
-    """Nine isolated particles, noise-free, blurred over 4-6 pitches through a 0.8 px blur and a
-    response falling to 0.75 at the micro-image rims: the depth fit models the response the white
-    image shows, so their depths come out as unbiased as through ideal optics. Counting a pixel's
-    points alike put them 15-17 um (+2 % of a cloud's spacing) too far from focus."""
+def _blur_and_rim_camera():
+    """A crop's metadata, model and private metadata, and a camera with a 0.8 px blur and a response
+    falling to 0.75 at the micro-image rims, calibrated from its own white image."""
     from analysis.simulation.camera_effects import CameraEffects
     from analysis.simulation.realism import Realism
 
@@ -371,6 +369,15 @@ def test_a_pixel_response_falling_toward_the_rim_under_a_wide_blur_biases_no_dep
     camera = CameraEffects.build(Realism(blur_px=0.8, rim_response=0.75), serial="A202160042")
     calibration = calibrate(WhiteImage.from_image("MOD_0001", render_white_image(model, seed=101, camera=camera),
                                                   meta, private))
+    return meta, model, private, camera, calibration
+
+
+def test_a_pixel_response_falling_toward_the_rim_under_a_wide_blur_biases_no_depth():
+    """Nine isolated particles, noise-free, blurred over 4-6 pitches through a 0.8 px blur and a
+    response falling to 0.75 at the micro-image rims: the depth fit models the response the white
+    image shows, so their depths come out as unbiased as through ideal optics. Counting a pixel's
+    points alike put them 15-17 um (+2 % of a cloud's spacing) too far from focus."""
+    meta, model, private, camera, calibration = _blur_and_rim_camera()
     assert calibration.profile is not None and calibration.profile.rim_response == pytest.approx(0.75, abs=0.02)
     gx, gy = np.meshgrid([-1.2, 0.0, 1.2], [-1.2, 0.0, 1.2])
     errors = []
@@ -392,16 +399,9 @@ def test_the_layers_prior_also_refits_particles_whose_pixels_pin_their_depth_as_
     well as its neighbours' surface does, and weighing both must beat the pixels alone. Refitted
     only where the prior was the narrower, such a particle of this crop stayed 0.125 NN off
     (depth RMS 4.2 % of NN; with both, 6 % and 2.3 %)."""
-    from analysis.simulation.camera_effects import CameraEffects
-    from analysis.simulation.realism import Realism
     from analysis.simulation.scoring import single_lens
 
-    meta = simulated_camera_metadata(size=SIZE)
-    model = CameraModel.from_metadata(meta)
-    private = simulated_private_metadata()
-    camera = CameraEffects.build(Realism(blur_px=0.8, rim_response=0.75), serial="A202160042")
-    calibration = calibrate(WhiteImage.from_image("MOD_0001", render_white_image(model, seed=101, camera=camera),
-                                                  meta, private))
+    meta, model, private, camera, calibration = _blur_and_rim_camera()
     particles = make_scenario("tilted-layer", 1, varied=True, brightness_spread=12.0).particles
     image = render_exposure(model, particles, seed=1, background_dn=40.0, camera=camera)
     truth = particle_truth(model, particles)
