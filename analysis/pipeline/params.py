@@ -75,7 +75,8 @@ class PipelineParams:
         Where a particle's neighbours lie on one surface, take the depth that surface predicts as a
         prior, weighed with the pixels (:func:`apply_depth_prior`, :mod:`analysis.depth.prior`): it
         decides where they leave the depth open (the light falls in one micro-lens); in a 3D crowd
-        no surface fits and it does nothing. Turn it off to measure out-of-surface motion from the pixels alone.
+        no surface fits and it does nothing. Turn it off to measure out-of-surface motion from the
+        pixels alone.
     weigh_noise
         The last refit of the strongly blurred particles (``sharpen``) weighs each sample by its
         noise (:class:`analysis.depth.sample_noise.SampleNoise`), not all alike. Off by default: it
