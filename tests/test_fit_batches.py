@@ -148,3 +148,25 @@ def test_screen_drops_a_second_fit_of_one_particle_and_only_what_the_full_refit_
         assert not (twice & kept).any(), (k, twice, kept)
         if k == 2:
             assert twice[-1] and not twice[:-1].any(), twice
+
+
+def test_a_refit_keeps_the_depth_prior_its_fit_was_made_with(scene):
+    """Where one lens holds a particle's light its depth comes from its prior; the refits after the
+    prior stage (a second deblending round, the last sharpening at the profile's vertex) refit that
+    fit and must keep its prior, not fall back on the pixels alone."""
+    model, table, image, s_hat, alpha = scene
+    fitter = _fitter(model, table, image)
+    free = fitter.fit(s_hat[:, 0], s_hat[:, 1], alpha)
+    prior_alpha, prior_sigma = np.full(alpha.size, np.nan), np.full(alpha.size, np.nan)
+    # The first particle is blurred over 0.3 lens pitches: half that blur, on the same side of
+    # focus, fits its pixels as well; a narrow prior there decides.
+    prior_alpha[0], prior_sigma[0] = 1.0 / (1.0 - 0.5 * (1.0 - 1.0 / alpha[0])), 2e-5
+    off = abs(free.alpha[0] - prior_alpha[0])
+    assert off > 10 * prior_sigma[0]
+    fit = fitter.fit(s_hat[:, 0], s_hat[:, 1], alpha, prior_alpha=prior_alpha, prior_sigma=prior_sigma)
+    assert abs(fit.alpha[0] - prior_alpha[0]) < 0.2 * off
+    for fine in (FINE_GRID, FINE_GRID._replace(vertex=True)):
+        again = fitter.fit(fit.sx_m, fit.sy_m, fit.alpha, subtract=fitter.render(fit), own=fit, fine=fine)
+        np.testing.assert_array_equal(again.prior_alpha, prior_alpha)
+        np.testing.assert_array_equal(again.prior_sigma, prior_sigma)
+        assert abs(again.alpha[0] - prior_alpha[0]) < 0.2 * off, fine

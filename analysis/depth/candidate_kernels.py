@@ -49,11 +49,12 @@ def censored_intensity(s_vf, s_ff, sum_v2, cens_v, cens_f, walked):
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def profile_vertex(costs, best, n_depths, n_pos, c_lo, c_hi, scale, mean_c):
+def profile_vertex(costs, best, n_depths, n_pos, c_lo, c_hi, scale, mean_c, c_prior, prior_k, prior_floor):
     """The depth ``c`` at the vertex of a parabola fitted to the depth profile: at each depth, the
-    costs of its ``n_pos`` positions marginalised at the candidates' temperature (``scale``), fitted
-    by least squares weighted as the candidates are; clipped to the window. Where the parabola opens
-    downward, ``mean_c`` (the tempered mean), or at the window's ends the lowest depth.
+    costs of its ``n_pos`` positions marginalised at the candidates' temperature (``scale``), plus
+    the depth prior's (as the candidates weigh it: ``prior_k`` 0 is none), fitted by least squares
+    weighted as the candidates are; clipped to the window. Where the parabola opens downward,
+    ``mean_c`` (the tempered mean), or at the window's ends the lowest depth.
 
     Why not the tempered mean: a strongly blurred particle's cost rises more slowly toward focus
     (larger patches per lens) than away from it, so the mean over a window leans toward focus; on
@@ -61,11 +62,14 @@ def profile_vertex(costs, best, n_depths, n_pos, c_lo, c_hi, scale, mean_c):
     ``c``. The vertex of the three lowest profile points alone was as unbiased, but noisier: through
     ideal optics it added a tenth to the off-focus ball's depth error."""
     base = costs[best]
+    step = (c_hi - c_lo) / max(n_depths - 1, 1)
     profile = np.empty(n_depths)
     for ic in range(n_depths):
         acc = 0.0
         for q in range(ic * n_pos, (ic + 1) * n_pos):
             acc += np.exp(-(costs[q] - base) / scale)
+        dc = c_lo + step * ic - c_prior
+        acc *= np.exp(-prior_k * dc * dc) + prior_floor
         profile[ic] = -scale * np.log(max(acc, 1e-300))
     ib = np.argmin(profile)
     # Weighted least squares of profile - profile[ib] = a x^2 + b x + c0, x in depth steps from ib.
@@ -80,7 +84,6 @@ def profile_vertex(costs, best, n_depths, n_pos, c_lo, c_hi, scale, mean_c):
             rhs[r] += w * powers[r] * y
             for k in range(3):
                 m[r, k] += w * powers[r] * powers[k]
-    step = (c_hi - c_lo) / max(n_depths - 1, 1)
     if abs(np.linalg.det(m)) < 1e-12 * m[0, 0] * m[1, 1] * m[2, 2]:
         return mean_c
     a, b, _ = np.linalg.solve(m, rhs)

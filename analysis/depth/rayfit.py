@@ -57,6 +57,9 @@ class RayFit:
     alpha_spread : float64
         Standard deviation of alpha over the weighted candidates: small where the light split
         pins the depth down, about a third of the allowed range where one lens holds it all.
+    prior_alpha, prior_sigma : float64
+        The depth prior the fit was made with (:func:`fit_rays`), NaN where none: kept with the
+        fit so that refits of it keep it too (:meth:`analysis.depth.refine.RayFitter.fit`).
     """
 
     sx_m: np.ndarray
@@ -66,6 +69,13 @@ class RayFit:
     n_lit: np.ndarray
     residual: np.ndarray
     alpha_spread: np.ndarray
+    prior_alpha: np.ndarray | None = None
+    prior_sigma: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("prior_alpha", "prior_sigma"):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, np.full(self.alpha.shape, np.nan))
 
     def __len__(self) -> int:
         return int(self.alpha.shape[0])
@@ -560,9 +570,12 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
                  kern.PriorTerms(c_prior, prior_k, prior_floor), int(recentre), float(coarse_floor), out,
                  *_balanced_slots(g.sample_ptr[g.lens_ptr[1:]] - g.sample_ptr[g.lens_ptr[:-1]],
                                   numba.get_num_threads()))
+    no_prior = np.full(n, np.nan)
     return RayFit(sx_m=out[:, 0], sy_m=out[:, 1], alpha=1.0 / (1.0 - out[:, 2]), intensity=out[:, 3],
                   n_lit=out[:, 4].astype(np.int64), residual=out[:, 5],
-                  alpha_spread=out[:, 6] / (1.0 - out[:, 2]) ** 2)
+                  alpha_spread=out[:, 6] / (1.0 - out[:, 2]) ** 2,
+                  prior_alpha=no_prior if prior_alpha is None else np.asarray(prior_alpha, np.float64).ravel(),
+                  prior_sigma=no_prior if prior_sigma is None else np.asarray(prior_sigma, np.float64).ravel())
 
 
 def _grid_pass(grid: FitGrid, idx: TableIndex, blur_px: float) -> kern.GridPass:

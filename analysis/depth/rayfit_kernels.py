@@ -136,7 +136,8 @@ def _fit_one(centres, ptr, uv, values, root_w, censored, sx0, sy0, c_lo, c_hi, g
     out[1] = my / wsum
     out[2] = mc
     if grid.vertex:
-        out[2] = profile_vertex(costs, best, grid.n_depths, grid.n_lateral ** 2, c_lo, c_hi, scale, mc)
+        out[2] = profile_vertex(costs, best, grid.n_depths, grid.n_lateral ** 2, c_lo, c_hi, scale, mc,
+                                c_prior, prior_k, prior_floor)
     out[3] = i0
     out[4] = lit[best]
     if root_w.size == 0:
