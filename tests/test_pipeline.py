@@ -204,10 +204,13 @@ def test_depth_prior_beats_what_the_pixels_alone_allow(tmp_path):
     c = simulated_case(tmp_path, "tilted-layer", 3, size=1200)
     count, floor = depth_floor(c.truth, c.exposure.model.lattice, nn_mm=c.nn_mm)
     assert count >= 3 and floor > 0.03  # this crop holds several such particles
-    with_prior = score(process(c.exposure, c.calibration, cache=c.cache).particles, c.truth, nn_mm=c.nn_mm)
-    alone = score(process(c.exposure, c.calibration, PipelineParams(depth_prior=False), cache=c.cache).particles,
-                  c.truth, nn_mm=c.nn_mm)
+    prior_table = process(c.exposure, c.calibration, cache=c.cache).particles
+    alone_table = process(c.exposure, c.calibration, PipelineParams(depth_prior=False), cache=c.cache).particles
+    with_prior, alone = (score(t, c.truth, nn_mm=c.nn_mm) for t in (prior_table, alone_table))
     assert with_prior.recall == alone.recall == 1.0
+    # The table says where the prior weighed in: on this layer, most particles; without it, none.
+    assert np.mean(np.isfinite(prior_table["prior_std"])) > 0.5
+    assert np.all(np.isnan(alone_table["prior_std"]))
     assert with_prior.depth_abs_rms_over_nn < 0.5 * floor
     assert alone.depth_abs_rms_over_nn > 0.8 * floor  # without it, the floor holds
 

@@ -417,3 +417,6 @@ def test_the_layers_prior_also_refits_particles_whose_pixels_pin_their_depth_as_
     assert more_lenses.sum() >= 10
     assert np.sqrt(np.mean(dz**2)) < 0.03
     assert np.max(np.abs(dz[more_lenses])) < 0.09
+    # The table tells which depths leaned on the neighbours' surface: on a layer, most of them.
+    prior_std = np.asarray(found["prior_std"])
+    assert np.mean(np.isfinite(prior_std)) > 0.5 and np.all(prior_std[np.isfinite(prior_std)] > 0)

@@ -35,8 +35,8 @@ from .atomic_write import atomic_path
 
 #: Columns of the particle table, in this order.
 COLUMNS: tuple[str, ...] = ("index", "x", "y", "alpha", "X", "Y", "Z", "brightness",
-                            "peak_height", "peak_width", "residual", "prominence", "alpha_std", "intensity",
-                            "n_lit", "blur_pitches", "leftover")
+                            "peak_height", "peak_width", "residual", "prominence", "alpha_std", "prior_std",
+                            "intensity", "n_lit", "blur_pitches", "leftover")
 #: Units of the columns that have them (NeXus `units` attributes).
 UNITS = {"x": "pixel", "y": "pixel", "X": "mm", "Y": "mm", "Z": "mm", "alpha": "1", "peak_width": "1"}
 #: Columns that hold whole numbers (read back as int64 from CSV).

@@ -398,6 +398,8 @@ def _particle_table(peaks: Peaks, tracks: Tracks | None, alphas: np.ndarray, tab
                  "X": X, "Y": Y, "Z": Z, "brightness": np.asarray(brightness, float), "peak_height": peaks.peak_height,
                  "peak_width": peaks.peak_width, "residual": peaks.residual, "prominence": peaks.prominence,
                  "alpha_std": nan if fit is None else fit.alpha_spread,
+                 # The width of the neighbours' depth prior the final fit weighed (NaN: the pixels alone).
+                 "prior_std": nan if fit is None else fit.prior_sigma,
                  "intensity": nan if fit is None else fit.intensity,
                  "n_lit": nan if fit is None else fit.n_lit.astype(float),
                  # Diameter of the blur disk on the micro-lens array, in lens pitches (as the

@@ -36,10 +36,13 @@ class Result:
         pixel as a fraction of ``intensity``; without refinement, of the brightness-curve fit in
         ``log B``), ``prominence`` (fraction of the curve's maximum; below 1 for the lesser
         particles of a shadowing group), ``alpha_std`` (spread of alpha over the candidates the
-        raw pixels allow: large where one lens holds all the light), ``intensity`` (fitted DN
-        of a lit pixel), ``n_lit`` (raw samples the fit lights) and ``blur_pitches`` (diameter
-        of the particle's blur disk on the micro-lens array in lens pitches: below about 1, one
-        lens may hold all its light and its depth is open within the range that lens allows).
+        raw pixels and the depth prior allow: large where one lens holds all the light and no
+        prior settles it), ``prior_std`` (width in alpha of the neighbours' depth prior the final
+        fit weighed, :mod:`analysis.depth.prior`; NaN where the pixels alone decide),
+        ``intensity`` (fitted DN of a lit pixel), ``n_lit`` (raw samples the fit lights),
+        ``blur_pitches`` (diameter of the particle's blur disk on the micro-lens array in lens
+        pitches: below about 1, one lens may hold all its light and its depth is open within the
+        range that lens allows) and ``leftover`` (share of the light around it no fit explains).
     params : PipelineParams
     alphas : ndarray of shape (n_slices,)
     grid : ImageGrid

@@ -5,7 +5,8 @@ worse, and where one micro-lens holds all of a particle's light (``blur_pitches`
 1) the pixels leave its depth open over the whole range in which its blur stays inside one
 lens, in front of focus or behind (README, "Accuracy and speed"). The table says both:
 
-- ``alpha_std``: the spread of ``alpha`` over the depths the raw pixels allow, turned into mm
+- ``alpha_std``: the spread of ``alpha`` over the depths the raw pixels allow (with the
+  neighbours' depth prior, where ``prior_std`` is finite), turned into mm
   with the table's own ``alpha -> Z`` relation (``Z`` depends on ``alpha`` alone, for the thin
   lens and for a user calibration alike, so a fit of ``Z`` against ``alpha`` over the table's rows
   gives the slope);
