@@ -155,6 +155,31 @@ def test_blur_widens_a_points_micro_image_by_the_expected_variance():
     assert np.abs(wide - composed).max() < 0.02 * wide.max() < np.abs(wide - sharp).max()
 
 
+def test_a_halo_spreads_its_share_of_the_light_as_wide_as_asked_in_exposures_and_white_images():
+    """A point spread that is no Gaussian: ``psf_halo`` of the light in a Gaussian of ``psf_halo_px``."""
+    model = centred(96)
+    z0 = model.optics.focus_distance_mm
+    point = Particles(np.array([0.01]), np.array([-0.02]), np.array([z0]), np.array([1000.0]))
+    ys, xs = np.mgrid[0:96, 0:96] + 0.5
+    moments = {}
+    for halo in (0.0, 0.2):
+        image = render_exposure(model, point, seed=3, noise=False, responses=FLAT,
+                                camera=camera(blur_px=0.8, psf_halo=halo, psf_halo_px=3.0))
+        signal = image.astype(np.float64) - model.black_level
+        mx, my = (signal * xs).sum() / signal.sum(), (signal * ys).sum() / signal.sum()
+        moments[halo] = signal.sum(), (signal * ((xs - mx) ** 2 + (ys - my) ** 2)).sum() / signal.sum()
+    assert moments[0.2][0] == pytest.approx(moments[0.0][0], rel=0.01)  # the halo moves light, adds none
+    # Per axis, a mixture's variance is the weighted mean of its parts': 0.2 (3^2 - 0.8^2) more.
+    assert (moments[0.2][1] - moments[0.0][1]) / 2 == pytest.approx(0.2 * (9.0 - 0.64), rel=0.05)
+    # The white images carry it too.
+    plain = camera_coverage(model, camera(blur_px=0.8))
+    haloed = camera_coverage(model, camera(blur_px=0.8, psf_halo=0.2, psf_halo_px=3.0))
+    assert haloed.sum() == pytest.approx(plain.sum(), rel=0.01) and np.abs(haloed - plain).max() > 0.05 * plain.max()
+    assert Realism(psf_halo_px=5.0).is_ideal and Realism(psf_halo=0.1).effects_on() == ("blur",)
+    with pytest.raises(ParameterError, match="psf_halo_px"):
+        Realism(blur_px=1.2, psf_halo=0.1, psf_halo_px=1.0)
+
+
 def test_second_stop_makes_corner_micro_images_cats_eyes_of_the_predicted_area():
     cam = camera(blur_px=0.3, vignetting_corner_cut=0.3, vignetting_onset=0.45)
     shapes = {}
@@ -385,6 +410,11 @@ def test_cli_realism_options(tmp_path, capsys):
     assert cli_main(["simulate", "--out", str(tmp_path / "bad"), "--size", "256", "--quiet", "--realism", "fog"]) == 2
     assert "choose from all, blur" in capsys.readouterr().err
     assert cli_main(["simulate", "--out", str(tmp_path / "bad"), "--size", "256", "--quiet", "--blur-px", "9"]) == 2
+    halo = tmp_path / "halo"
+    assert cli_main(["simulate", "--scenario", "ball", "--seed", "2", "--size", "256", "--out", str(halo), "--quiet",
+                     "--psf-halo", "0.15", "--psf-halo-px", "2.5"]) == 0
+    doc = json.loads((halo / "scenario.json").read_text())["realism"]
+    assert doc["parameters"]["effects"] == ["blur"] and doc["camera"]["halo"] == {"fraction": 0.15, "sigma_px": 2.5}
 
 
 def test_false_particles_on_a_reflection_are_counted():

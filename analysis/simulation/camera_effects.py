@@ -155,6 +155,8 @@ class CameraEffects:
     ----------
     blur_px : float
         Sigma of the Gaussian point spread on the sensor, px.
+    psf_halo, psf_halo_px : float
+        Fraction of the point spread's light in a wider Gaussian halo, and its sigma (px).
     half_n : float
         Half the exponent ``n`` of the pixel response ``cos(theta)^n`` (0: flat).
     transmission : LensTransmission or None
@@ -168,6 +170,8 @@ class CameraEffects:
     """
 
     blur_px: float
+    psf_halo: float = 0.0
+    psf_halo_px: float = 3.0
     half_n: float = 0.0
     transmission: LensTransmission | None = None
     vignetting_corner_cut: float = 0.0
@@ -188,7 +192,7 @@ class CameraEffects:
         if realism.hot_pixel_fraction > 0 or realism.dead_pixel_fraction > 0:
             defects = SensorDefects.draw(serial, hot_fraction=realism.hot_pixel_fraction,
                                          dead_fraction=realism.dead_pixel_fraction)
-        return cls(blur_px=realism.blur_px, half_n=half_n, transmission=transmission,
+        return cls(blur_px=realism.blur_px, psf_halo=realism.psf_halo, psf_halo_px=realism.psf_halo_px, half_n=half_n, transmission=transmission,
                    vignetting_corner_cut=realism.vignetting_corner_cut, vignetting_onset=realism.vignetting_onset,
                    defects=defects, drift_px=realism.lattice_drift_px, drift_rad=realism.lattice_drift_rad)
 

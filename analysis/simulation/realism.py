@@ -10,7 +10,8 @@ Effects are grouped as the realism bench switches them (`EFFECTS`):
 
 ``blur``
     Point spread of the micro-lenses and the pixels wider than the ideal 0.5 px (diffraction at
-    the micro-lens, aberration, pixel cross-talk).
+    the micro-lens, aberration, pixel cross-talk); optionally with a wide halo, so that the point
+    spread is not the Gaussian the pipeline fits (off in the typical camera: a shape to vary).
 ``micro-images``
     A pixel response inside each micro-image falling off toward its rim (the pixels' angular
     response, ``cos^n`` of the ray's angle to its micro-image's chief ray), and a per-micro-lens
@@ -46,7 +47,7 @@ from analysis.errors import ParameterError
 
 #: Effect groups, in the order the realism bench shows them; each maps to its `Realism` fields.
 EFFECTS: dict[str, tuple[str, ...]] = {
-    "blur": ("blur_px",),
+    "blur": ("blur_px", "psf_halo", "psf_halo_px"),
     "micro-images": ("rim_response", "lens_transmission_spread"),
     "vignetting": ("vignetting_corner_cut", "vignetting_onset"),
     "hot-pixels": ("hot_pixel_fraction", "dead_pixel_fraction"),
@@ -70,6 +71,12 @@ class Realism:
     blur_px : float
         Sigma in pixels of the Gaussian point spread applied to all light on the sensor
         (0.5 = ideal; real: 0.3 ... 1.5).
+    psf_halo : float
+        Fraction of the point spread's light in a wider Gaussian halo (light scattered in the
+        micro-lenses and the colour filters, cross-talk beyond the next pixel); 0 = none, the
+        Gaussian of ``blur_px`` alone, as in the typical camera and the ideal one.
+    psf_halo_px : float
+        Sigma in pixels of that halo.
     rim_response : float
         Pixel response at the rim of a micro-image relative to its centre, for the picture's
         f/2 (image side) main lens, whose marginal rays meet the sensor at 14 degrees to the
@@ -121,6 +128,8 @@ class Realism:
     """
 
     blur_px: float = IDEAL_BLUR_PX
+    psf_halo: float = 0.0
+    psf_halo_px: float = 3.0
     rim_response: float = 1.0
     lens_transmission_spread: float = 0.0
     vignetting_corner_cut: float = 0.0
@@ -140,6 +149,9 @@ class Realism:
         object.__setattr__(self, "lattice_drift_px", tuple(float(v) for v in self.lattice_drift_px))
         checks = [
             (0.2 <= self.blur_px <= 3.0, f"blur_px={self.blur_px}: give a point-spread sigma of 0.2 ... 3 px"),
+            (0.0 <= self.psf_halo <= 0.5, f"psf_halo={self.psf_halo}: give a fraction of the light of 0 ... 0.5"),
+            (self.blur_px < self.psf_halo_px <= 10.0,
+             f"psf_halo_px={self.psf_halo_px}: give a sigma wider than blur_px ({self.blur_px}) and at most 10 px"),
             (0.05 <= self.rim_response <= 1.0, f"rim_response={self.rim_response}: give 0.05 ... 1 (1 = flat)"),
             (0.0 <= self.lens_transmission_spread <= 0.3,
              f"lens_transmission_spread={self.lens_transmission_spread}: give 0 ... 0.3 (a few % is typical)"),
@@ -164,7 +176,7 @@ class Realism:
         for ok, message in checks:
             if not ok:
                 raise ParameterError(message)
-        for name in ("blur_px", "rim_response", "lens_transmission_spread", "glow_gradient", "reflection_dn",
+        for name in ("blur_px", "psf_halo", "psf_halo_px", "rim_response", "lens_transmission_spread", "glow_gradient", "reflection_dn",
                      "glint_dn", "brightness_spread", "lattice_drift_rad"):
             if not math.isfinite(getattr(self, name)):
                 raise ParameterError(f"{name} must be a finite number")
@@ -217,7 +229,9 @@ class Realism:
         on = []
         for name, names in EFFECTS.items():
             active = [f for f in names if getattr(self, f) != getattr(ideal, f)]
-            # An onset or a glint level alone changes nothing.
+            # An onset, a halo's width or a glint level alone changes nothing.
+            if name == "blur" and self.blur_px == ideal.blur_px and self.psf_halo == 0:
+                active = []
             if name == "vignetting" and self.vignetting_corner_cut == 0:
                 active = []
             if name == "reflections" and self.reflection_dn == 0 and self.glints == 0:

@@ -61,6 +61,17 @@ def blur(image: np.ndarray, sigma_px: float = BLUR_SIGMA_PX) -> np.ndarray:
                             borderType=cv2.BORDER_REFLECT_101)
 
 
+def point_spread(image: np.ndarray, camera: CameraEffects) -> np.ndarray:
+    """The realistic camera's point spread on a float32 image: the Gaussian of ``camera.blur_px``,
+    with ``camera.psf_halo`` of the light in the wider Gaussian halo of ``camera.psf_halo_px``."""
+    core = blur(image, camera.blur_px)
+    if camera.psf_halo <= 0:
+        return core
+    core *= np.float32(1.0 - camera.psf_halo)
+    core += np.float32(camera.psf_halo) * blur(image, camera.psf_halo_px)
+    return core
+
+
 def read_out(expected_dn: np.ndarray, *, black: float, white: float, rng: np.random.Generator | None,
              rows_per_block: int = 256) -> np.ndarray:
     """Sensor readout of an expected signal (DN above black): shot and read noise, black level,
@@ -154,7 +165,7 @@ def camera_coverage(model: CameraModel, camera: CameraEffects, *, lattice: Latti
     paint_micro_images(out, cx, cy, np.ascontiguousarray(value, dtype=np.float64), float(radius), stop_dx, stop_dy,
                        float(radius2), optics.pixel_pitch_m / optics.mla_to_sensor_m, camera.half_n,
                        _RIM_SUPERSAMPLE)
-    return blur(out, camera.blur_px)
+    return point_spread(out, camera)
 
 
 def _lens_plane_m(model: CameraModel, cx: np.ndarray, cy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -402,7 +413,7 @@ def render_exposure(model: CameraModel, particles: Particles, *, seed: int, back
     light = accumulate_particles(model, particles, rng=rng, samples_per_side=samples_per_side, camera=camera)
     if chamber is not None and chamber.sources:
         light += render_reflections(model, lattice, chamber, camera)
-    expected = blur(light, camera.blur_px)
+    expected = point_spread(light, camera)
     expected *= channel_response_map(model.height, model.width, responses)
     if background_dn > 0:
         glow = camera_coverage(model, camera, lattice=lattice, chamber=chamber)

@@ -140,6 +140,11 @@ def add_realism_arguments(parser: argparse.ArgumentParser) -> None:
                             f"of {', '.join(EFFECTS)}")
     group.add_argument("--blur-px", type=float, default=None, metavar="SIGMA",
                        help=f"sigma of the point spread in px (ideal 0.5; typical {t.blur_px})")
+    group.add_argument("--psf-halo", type=float, default=None, metavar="FRACTION",
+                       help="fraction of the point spread's light in a wide Gaussian halo (scatter, cross-talk), so "
+                            "the point spread is not the Gaussian the pipeline fits (0: none, as typical and ideal)")
+    group.add_argument("--psf-halo-px", type=float, default=None, metavar="SIGMA",
+                       help=f"sigma of that halo in px (default {t.psf_halo_px:g})")
     group.add_argument("--rim-response", type=float, default=None, metavar="R",
                        help=f"pixel response at a micro-image's rim relative to its centre (ideal 1; typical "
                             f"{t.rim_response})")
@@ -190,7 +195,8 @@ def realism_from_args(args: argparse.Namespace) -> Realism:
     effects = [] if args.realism is None else [e.strip() for e in args.realism.split(",") if e.strip()]
     realism = Realism.only(*effects) if effects else Realism()
     changes: dict = {}
-    for option, name in [("blur_px", "blur_px"), ("rim_response", "rim_response"),
+    for option, name in [("blur_px", "blur_px"), ("psf_halo", "psf_halo"), ("psf_halo_px", "psf_halo_px"),
+                         ("rim_response", "rim_response"),
                          ("lens_transmission_spread", "lens_transmission_spread"),
                          ("vignetting", "vignetting_corner_cut"), ("vignetting_onset", "vignetting_onset"),
                          ("hot_pixels", "hot_pixel_fraction"), ("dead_pixels", "dead_pixel_fraction"),
