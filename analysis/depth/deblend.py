@@ -191,7 +191,7 @@ def sharpen_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit,
     fits.
     Without the depth prior (:mod:`analysis.depth.prior`): it comes from the neighbours' depths
     before this refit, the tempered means it corrects, and pulled the vertex back toward them
-    (held-out layer 130, every effect, an untold 1.2 px blur: six particles blurred over 5-6
+    (held-out layer 130, every effect, an untold 1.2 px blur: six particles blurred over 4.8-6.5
     pitches 0.02-0.04 NN farther off each, depth error 1.37 -> 1.53 % of NN)."""
     rows = np.flatnonzero(fitter.strongly_blurred(fit.alpha))
     return _refit_where_acceptable(fitter, peaks, fit, rows, wide_pixels=True, vertex=True, noise=noise,

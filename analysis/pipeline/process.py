@@ -17,7 +17,7 @@ parameter object stored with every result::
               # more detection pass on what the deblended fits leave, all deblended again with it
     peaks   = apply_depth_prior(fitter, peaks, fit)       # analysis.depth.prior: particles on a surface
     peaks   = refit_blurred(fitter, peaks, fit)           # analysis.depth.deblend: blurred ones again,
-              # with every neighbour's light as the stages before left it
+              # with every neighbour's light as the stages before left it (each fit keeps its prior)
     peaks   = drop_misfits(drop_extended(...))            # analysis.depth.quality: light that does not
               # converge to a point, and the final table's misfit limit (max_fit_residual)
     peaks   = sharpen_blurred(fitter, peaks, fit)         # analysis.depth.deblend: the blurred ones'
