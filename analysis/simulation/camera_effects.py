@@ -192,7 +192,8 @@ class CameraEffects:
         if realism.hot_pixel_fraction > 0 or realism.dead_pixel_fraction > 0:
             defects = SensorDefects.draw(serial, hot_fraction=realism.hot_pixel_fraction,
                                          dead_fraction=realism.dead_pixel_fraction)
-        return cls(blur_px=realism.blur_px, psf_halo=realism.psf_halo, psf_halo_px=realism.psf_halo_px, half_n=half_n, transmission=transmission,
+        return cls(blur_px=realism.blur_px, psf_halo=realism.psf_halo, psf_halo_px=realism.psf_halo_px,
+                   half_n=half_n, transmission=transmission,
                    vignetting_corner_cut=realism.vignetting_corner_cut, vignetting_onset=realism.vignetting_onset,
                    defects=defects, drift_px=realism.lattice_drift_px, drift_rad=realism.lattice_drift_rad)
 

@@ -176,8 +176,8 @@ class Realism:
         for ok, message in checks:
             if not ok:
                 raise ParameterError(message)
-        for name in ("blur_px", "psf_halo", "psf_halo_px", "rim_response", "lens_transmission_spread", "glow_gradient", "reflection_dn",
-                     "glint_dn", "brightness_spread", "lattice_drift_rad"):
+        for name in ("blur_px", "psf_halo", "psf_halo_px", "rim_response", "lens_transmission_spread",
+                     "glow_gradient", "reflection_dn", "glint_dn", "brightness_spread", "lattice_drift_rad"):
             if not math.isfinite(getattr(self, name)):
                 raise ParameterError(f"{name} must be a finite number")
 

@@ -300,7 +300,8 @@ def _realism_doc(realism: Realism, model: CameraModel, camera: CameraEffects | N
         drifted = camera.exposure_lattice(model.lattice)
         doc["camera"] = {
             "blur_sigma_px": camera.blur_px,
-            "halo": {"fraction": camera.psf_halo, "sigma_px": camera.psf_halo_px} if camera.psf_halo > 0 else None,
+            "halo": ({"fraction": camera.psf_halo, "sigma_px": camera.psf_halo_px} if camera.psf_halo > 0
+                     else None),
             "pixel_response_exponent": 2 * camera.half_n,
             "second_stop": None if stop is None else {"shift_per_m": stop.shift_per_m, "projected_radius_m": stop.radius_m,
                                                       **stop.physical(model.optics.exit_pupil_m)},
