@@ -31,7 +31,8 @@ log = logging.getLogger(__name__)
 
 # Bump when the cache file's content or meaning changes; it is part of the file name.
 # 2: the micro-image profile (optical blur, aperture image radius, rim response) in the header.
-CACHE_VERSION = 2
+# 3: the lattice fitted without the micro-images a second stop cuts (analysis.calibration.cut_lenses).
+CACHE_VERSION = 3
 
 
 def cache_path(cache_dir: Path, serial: str | None, white_sha1: str) -> Path:

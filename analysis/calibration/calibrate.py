@@ -135,8 +135,9 @@ def calibrate(white: WhiteImage, *, fallback_metadata: dict | None = None) -> Ca
         model = CameraModel.from_metadata(fallback_metadata)
     raw = white.image()
     fit: LatticeFit = fit_lattice(raw, model.lattice, black_level=model.black_level)
-    log.info("white image %s: lattice %s, fit rms %.4f px over %d blocks, %d lenses (centroid rms %.3f px)",
-             white.name, fit.lattice, fit.rms_px, fit.n_blocks, fit.n_lenses, fit.centroid_rms_px)
+    log.info("white image %s: lattice %s, fit rms %.4f px over %d blocks (%d left out, holding cut micro-images), "
+             "%d lenses (centroid rms %.3f px)", white.name, fit.lattice, fit.rms_px, fit.n_blocks, fit.n_cut_blocks,
+             fit.n_lenses, fit.centroid_rms_px)
     try:
         profile: MicroImageProfile | None = fit_micro_image_profile(
             raw, fit.lattice, black_level=model.black_level, white_level=model.white_level,

@@ -10,6 +10,13 @@ at once with a robust least-squares fit. This uses every pixel, needs no assumpt
 shape of a micro-image (only that it is centrally symmetric, bright at its centre), and is
 independent of the Bayer gains once the channels are balanced.
 
+A second stop's cat's-eye micro-images toward the corners are not centrally symmetric: their
+patterns' phases move toward the uncut side, and fitted with the rest they stretched the lattice
+(a white image with the typical simulated stop, 30 % of the aperture cut at the corners: the
+fitted centres 0.44 px off beyond 60 % of the half-diagonal, the depths of blurred particles
+there twice as far off). The blocks holding such micro-images
+(:mod:`analysis.calibration.cut_lenses`) are left out of a last fit.
+
 Per-lens intensity-weighted centroids are then measured against the fitted lattice as a check
 (:class:`LatticeFit` residual statistics); they do not steer the fit.
 """
@@ -22,8 +29,12 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
+from scipy.spatial import cKDTree
+
 from analysis.camera.model import Lattice
 from analysis.errors import CalibrationError
+
+from .cut_lenses import cell_areas, full_shape
 
 _FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
@@ -37,6 +48,9 @@ _STRIDE_PX = 32
 _STAGE_RADII_PX = (300.0, 700.0, 1400.0, math.inf)
 # Below this modulation depth at the fundamentals there is no micro-image pattern to fit.
 _MIN_MODULATION = 0.02
+# Micro-image radius in pitches for the central level of a cut micro-image's test (F01: 4.46 / 9.94);
+# only the inner half of it is used, so another camera's ratio serves as well.
+_RADIUS_PITCHES = 0.45
 
 
 @dataclass(frozen=True)
@@ -61,6 +75,8 @@ class LatticeFit:
         Mean centroid-minus-fit vector ``(dx, dy)``; near zero when the fit is unbiased.
     n_outliers : int
         Measured lenses whose centroid lies over 1 px from the fitted centre (defects, dust).
+    n_cut_blocks : int
+        Blocks left out of the last fit for holding micro-images a second stop cuts.
     """
 
     lattice: Lattice
@@ -72,6 +88,7 @@ class LatticeFit:
     centroid_p95_px: float
     centroid_bias_px: tuple[float, float]
     n_outliers: int
+    n_cut_blocks: int = 0
 
 
 def balance_channels(white: np.ndarray, *, black_level: float) -> np.ndarray:
@@ -264,7 +281,6 @@ def fit_lattice(white: np.ndarray, seed: Lattice, *, black_level: float = 168.0,
         If the image is too small, shows no micro-image pattern near the seed, or the fit
         does not converge.
     """
-    from scipy.optimize import least_squares  # here: 11 MB that a worker with a cached calibration never needs
     white = np.asarray(white)
     if white.ndim != 2 or min(white.shape) < 2 * _BLOCK_PX:
         raise CalibrationError(
@@ -303,26 +319,54 @@ def fit_lattice(white: np.ndarray, seed: Lattice, *, black_level: float = 168.0,
     weights = amps / np.median(amps[bright])
     for stage_radius in _STAGE_RADII_PX:
         use = bright & (radius <= stage_radius)
-        c, ph, wt = centres[use], phases[use], weights[use]
-
-        def residuals(q: np.ndarray) -> np.ndarray:
-            return (wt * _wrap(ph - _model_phases(q, seed, g_seed, c))).ravel()
-
-        # Phase noise of ~0.05 rad is typical; larger residuals are treated as outliers.
-        sol = least_squares(residuals, p, loss="huber", f_scale=0.1, x_scale=[1.0, 1.0, 0.01, 1e-3, 1e-3],
-                            method="trf")
-        if not sol.success:
-            raise CalibrationError(f"the lattice fit did not converge ({sol.message}); "
-                                   "check the seed lattice and the white image")
-        p = sol.x
+        p = _fit_phases(p, seed, g_seed, centres[use], phases[use], weights[use])
     lattice = _lattice_from_params(p, seed)
+    cut = use & _holding_cut_lenses(image, lattice, centres + [seed.origin_x, seed.origin_y])
+    if cut.any() and (use & ~cut).sum() >= max(20, use.sum() // 4):
+        use &= ~cut
+        p = _fit_phases(p, seed, g_seed, centres[use], phases[use], weights[use])
+        lattice = _lattice_from_params(p, seed)
+    c, ph = centres[use], phases[use]
     res = _wrap(ph - _model_phases(p, seed, g_seed, c))
     # A phase error e on fundamental g is a displacement of e / (2 pi |g|) pixels along g.
     g_len = np.linalg.norm(fundamental_frequencies(lattice), axis=1)
     disp = res / (2.0 * np.pi * g_len[None, :])
     rms = float(np.sqrt(np.mean(np.clip(disp, -1.0, 1.0) ** 2)))
     stats = _centroid_statistics(image, lattice)
-    return LatticeFit(lattice=lattice, rms_px=rms, n_blocks=int(use.sum()), **stats)
+    return LatticeFit(lattice=lattice, rms_px=rms, n_blocks=int(use.sum()), n_cut_blocks=int(cut.sum()), **stats)
+
+
+def _fit_phases(p: np.ndarray, seed: Lattice, g_seed: np.ndarray, centres: np.ndarray, phases: np.ndarray,
+                weights: np.ndarray) -> np.ndarray:
+    """The lattice parameters that fit the blocks' phases best, starting from ``p``."""
+    from scipy.optimize import least_squares  # here: 11 MB that a worker with a cached calibration never needs
+
+    def residuals(q: np.ndarray) -> np.ndarray:
+        return (weights * _wrap(phases - _model_phases(q, seed, g_seed, centres))).ravel()
+
+    # Phase noise of ~0.05 rad is typical; larger residuals are treated as outliers.
+    sol = least_squares(residuals, p, loss="huber", f_scale=0.1, x_scale=[1.0, 1.0, 0.01, 1e-3, 1e-3], method="trf")
+    if not sol.success:
+        raise CalibrationError(f"the lattice fit did not converge ({sol.message}); check the seed lattice and the "
+                               "white image")
+    return sol.x
+
+
+def _holding_cut_lenses(image: np.ndarray, lattice: Lattice, blocks_px: np.ndarray) -> np.ndarray:
+    """Which blocks (centres ``blocks_px``, image pixels) hold micro-images that a second stop cuts
+    (a mask; over half of theirs: noise takes several % of full ones for cut); micro-images whose
+    cells leave the sensor are not judged."""
+    h, w = image.shape
+    ij, lens_xy = lattice.centres(w, h, margin_px=lattice.pitch_px)
+    if len(ij) < 20:
+        return np.zeros(len(blocks_px), dtype=bool)
+    area = cell_areas(image, lattice, ij, radius_px=_RADIUS_PITCHES * lattice.pitch_px)
+    axis = np.clip(lattice.origin, [0.0, 0.0], [w, h])
+    cut = np.isfinite(area) & ~full_shape(area, np.hypot(*(lens_xy - axis).T) <= _STAGE_RADII_PX[0])
+    if not cut.any():
+        return np.zeros(len(blocks_px), dtype=bool)
+    inside = cKDTree(lens_xy).query_ball_point(blocks_px, r=_BLOCK_PX / 2, p=np.inf)
+    return np.array([len(hits) > 0 and np.count_nonzero(cut[hits]) > len(hits) / 2 for hits in inside], dtype=bool)
 
 
 @njit(cache=True, parallel=True, fastmath=_FASTMATH)

@@ -34,7 +34,8 @@ from analysis.camera.model import Lattice, green_mask
 from analysis.errors import CalibrationError
 
 from .lattice_fit import balance_channels
-from .profile_kernels import cell_sums, sample_template
+from .cut_lenses import cell_areas, full_shape
+from .profile_kernels import sample_template
 
 log = logging.getLogger(__name__)
 
@@ -46,9 +47,6 @@ MAX_BLUR_PX = 2.0
 _TAIL_SIGMAS = 4.0
 #: Spacing (px) of the fine grid the micro-image template is computed on.
 _TEMPLATE_STEP_PX = 1.0 / 16.0
-#: A micro-image is of full shape when its area (light of its cell over its central level) is within
-#: this fraction (or three times the areas' own spread) of the largest areas on the sensor.
-_AREA_TOLERANCE = 0.015
 #: Pixels whose misfit exceeds this many RMS are left out of the final fit (dust, missed defects) ...
 _OUTLIER_SIGMAS = 6.0
 #: ... and so are micro-images whose pixels misfit this many times more than the median one's
@@ -270,18 +268,16 @@ def _gather(raw: np.ndarray, lattice: Lattice, *, black_level: float, white_leve
         raise CalibrationError(f"only {len(ij)} micro-images lie on the white image; the blur cannot be estimated")
     axis = np.clip(lattice.origin, [0.0, 0.0], [w, h])
     region = np.argsort(np.hypot(*(centres - axis).T), kind="stable")[:n_lenses]
-    area = _cell_areas(raw, lattice, ij, black_level=black_level, radius_px=radius_px, bad=bad)
+    balanced = balance_channels(raw, black_level=black_level)
+    balanced[bad] = np.nan
+    area = cell_areas(balanced, lattice, ij, radius_px=radius_px)
+    del balanced
     finite = np.isfinite(area)
     if finite.sum() < 20:
         raise CalibrationError("too few lit micro-images on the white image to estimate the blur; check that it is "
                                "an exposed white image")
     # A second stop only ever takes light away: full micro-images are those of the largest areas.
-    reference = float(np.percentile(area[finite], 90))
-    region_areas = area[region][finite[region]]
-    spread = (1.4826 * float(np.median(np.abs(region_areas - np.median(region_areas)))) if region_areas.size
-              else 0.0)
-    tolerance = max(_AREA_TOLERANCE, 3.0 * spread / reference)
-    full = finite & (area >= (1.0 - tolerance) * reference)
+    full = full_shape(area, region)
     n_cut = int(np.count_nonzero(finite[region] & ~full[region]))
     own = region[full[region]]
     if own.size < min(n_lenses, 40):
@@ -332,25 +328,6 @@ def _gather(raw: np.ndarray, lattice: Lattice, *, black_level: float, white_leve
     data = _FitData(values, weights, owner, np.concatenate(ep), entry_lens.reshape(-1), np.concatenate(ex),
                     np.concatenate(ey), prior, float(reach))
     return data, n_cut
-
-
-def _cell_areas(raw: np.ndarray, lattice: Lattice, ij: np.ndarray, *, black_level: float, radius_px: float,
-                bad: np.ndarray) -> np.ndarray:
-    """Per lens ``ij``: the light of its cell over its central level (px^2), from all four channels
-    balanced; NaN for cells with a pixel left out (``bad``). A second stop's cut makes it smaller; the
-    lens's gain does not change it."""
-    image = balance_channels(raw, black_level=black_level)
-    image[bad] = np.nan
-    i0, j0 = ij.min(axis=0)
-    span = ij.max(axis=0) - ij.min(axis=0) + 1
-    sums = np.zeros((span[1], span[0], 7))
-    cell_sums(image, lattice.origin_x, lattice.origin_y, lattice.basis, np.linalg.inv(lattice.basis), int(i0), int(j0),
-              0.5 * radius_px, sums)
-    s = sums[ij[:, 1] - j0, ij[:, 0] - i0]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        area = s[:, 0] / (s[:, 3] / s[:, 4])
-    area[(s[:, 6] > 0) | ~(s[:, 3] > 0)] = np.nan
-    return area
 
 
 def _model(data: _FitData, theta: np.ndarray, radius0: float) -> tuple[np.ndarray, np.ndarray]:

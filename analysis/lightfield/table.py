@@ -36,7 +36,9 @@ if TYPE_CHECKING:
 
 # Bump when the saved layout changes, so stale caches are rebuilt, not misread.
 # 7: members aligned for memory mapping (analysis.formats.mapped_npz).
-TABLE_FORMAT_VERSION = 7
+# 8: built on the lattice fitted without the micro-images a second stop cuts (calibration cache v3): a
+#    table's file is named by its white image, not its lattice, so a new lattice fit needs a new version.
+TABLE_FORMAT_VERSION = 8
 
 # Empty lens sites kept around the lattice so that shifted samples near the edge still land
 # on the site grid (the simulated f/2 camera shifts by up to about 4 lenses over 0.987 ... 1.013).
