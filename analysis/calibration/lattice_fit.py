@@ -28,7 +28,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
-
 from scipy.spatial import cKDTree
 
 from analysis.camera.model import Lattice
