@@ -287,6 +287,31 @@ def test_cache_files_of_older_formats_are_removed(white_folder, tmp_path):
     assert all(p.exists() for p in kept)
 
 
+def test_a_table_of_another_lattice_is_rebuilt(white_folder, tmp_path, caplog):
+    """A table file is named by its white image; one left by a calibration of another lattice (a
+    newer lattice fit of the same white) is rebuilt, not read: its samples see other aperture points."""
+    from analysis.cache import Cache
+    from analysis.pipeline.tables import get_table
+
+    meta = simulated_camera_metadata(size=SIZE)
+    calibration = load_calibration(white_folder, meta, serial=SERIAL, cache_dir=tmp_path / "cache")
+    old = get_table(calibration, Cache(directory=tmp_path / "cache"))
+    lattice = calibration.model.lattice
+    moved = replace(calibration, model=calibration.model.with_lattice(lattice.with_changes(origin_x=lattice.origin_x + 0.2)))
+    with caplog.at_level(logging.WARNING):
+        table = get_table(moved, Cache(directory=tmp_path / "cache"))
+    assert "another lattice" in caplog.text
+    rows, cols = np.divmod(table.pixel_index.astype(np.int64), SIZE)
+    u, _ = moved.model.aperture_coordinates(cols + 0.5, rows + 0.5)
+    np.testing.assert_allclose(table.u_m, u, rtol=0, atol=1e-6 * np.abs(u).max())
+    assert np.abs(old.u_m[: table.u_m.size] - table.u_m[: old.u_m.size]).max() > 0.1 * np.abs(u).max()
+    # The rebuilt table replaced the stale file: a fresh process reads it without rebuilding.
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        get_table(moved, Cache(directory=tmp_path / "cache"))
+    assert "another lattice" not in caplog.text
+
+
 @pytest.mark.parametrize("damage", ["garbage", "truncated", "other_white"])
 def test_corrupt_cache_is_rebuilt(white_folder, tmp_path, caplog, damage):
     meta = simulated_camera_metadata(size=SIZE)

@@ -55,8 +55,8 @@ def get_table(calibration: Calibration, cache: Cache, *, grid_oversample: float 
     :func:`save_normalisations` writes it again once the cache holds new refocus normalisations
     for it. ``rim_px`` as in :func:`analysis.lightfield.table.build_table`.
     """
-    key = ("table", calibration.serial, calibration.white_sha1, calibration.defects_key, float(grid_oversample),
-           float(rim_px))
+    key = ("table", calibration.serial, calibration.white_sha1, calibration.model.lattice, calibration.defects_key,
+           float(grid_oversample), float(rim_px))
     table = cache.get(key)
     if table is not None:
         return table
@@ -68,7 +68,11 @@ def get_table(calibration: Calibration, cache: Cache, *, grid_oversample: float 
         except Exception as exc:  # a stale or broken cache is rebuilt, never trusted
             log.warning("look-up table cache %s unusable (%s); rebuilding it", path, exc)
             table = None
-    if table is None or (table.height, table.width) != (calibration.model.height, calibration.model.width):
+    if table is not None and not _built_for(table, calibration):
+        log.warning("look-up table cache %s was built for another lattice than its calibration's; rebuilding it",
+                    path)
+        table = None
+    if table is None:
         table = build_table(calibration, grid_oversample=grid_oversample, rim_px=rim_px, min_weight=MIN_WEIGHT)
         release_pages(calibration.devignetting)
         if path is not None and _save_quietly(table, path, cache):
@@ -104,6 +108,24 @@ def release_table_pages(table: LightFieldTable, cache: Cache) -> None:
         release_pages(column)
     for _, value in cache.entries(NORMALISATION, table.uid):
         release_pages(value)
+
+
+def _built_for(table: LightFieldTable, calibration: Calibration) -> bool:
+    """Whether ``table`` maps the sensor as ``calibration``'s lattice does, checked on a few samples.
+
+    A table file is named by its white image, and a white image's lattice can change without its
+    bytes changing (a newer lattice fit, a calibration cache rebuilt); a table of the old lattice
+    would put every sample at the wrong aperture point."""
+    model = calibration.model
+    if (table.height, table.width) != (model.height, model.width) or table.pixel_index.size == 0:
+        return False
+    picks = np.unique(np.linspace(0, table.pixel_index.size - 1, 17).astype(np.int64))
+    rows, cols = np.divmod(table.pixel_index[picks].astype(np.int64), model.width)
+    u, v = model.aperture_coordinates(cols + 0.5, rows + 0.5)
+    tolerance = 1e-4 * model.optics.aperture_m_per_px  # float32 storage: far below a lattice change
+    basis = model.lattice.basis * (model.optics.pixel_pitch_m / model.optics.projection_factor)
+    return bool(np.all(np.abs(u - table.u_m[picks]) <= tolerance) and np.all(np.abs(v - table.v_m[picks]) <= tolerance)
+                and np.allclose(basis, table.basis_m, rtol=1e-9, atol=0.0))
 
 
 def _save_quietly(table: LightFieldTable, path: Path, cache: Cache) -> bool:
