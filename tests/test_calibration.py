@@ -138,23 +138,54 @@ def test_full_size_fit():
     assert fit.n_lenses > 120_000
 
 
-@pytest.mark.slow
-def test_a_second_stops_cats_eyes_do_not_stretch_the_lattice():
-    """Cat's-eye micro-images toward the corners are not centrally symmetric: fitted with the rest,
-    the typical simulated stop put the fitted centres 0.44 px off beyond 60 % of the half-diagonal."""
+@pytest.fixture(scope="module")
+def vignetted_white():
+    """A full-size white image through the typical simulated camera's optics (its second stop, blur,
+    micro-image response and lens transmission): model, camera, raw image."""
     from analysis.simulation.camera_effects import CameraEffects
     from analysis.simulation.realism import Realism
 
     model = _truth_model(3280)
     camera = CameraEffects.build(Realism(blur_px=0.8, vignetting_corner_cut=0.3, vignetting_onset=0.45,
                                          rim_response=0.75, lens_transmission_spread=0.03), serial=SERIAL)
-    fit = fit_lattice(render_white_image(model, seed=2, camera=camera), model.lattice,
-                      black_level=model.black_level)
+    return model, camera, render_white_image(model, seed=2, camera=camera)
+
+
+@pytest.mark.slow
+def test_a_second_stops_cats_eyes_do_not_stretch_the_lattice(vignetted_white):
+    """Cat's-eye micro-images toward the corners are not centrally symmetric: fitted with the rest,
+    the typical simulated stop put the fitted centres 0.44 px off beyond 60 % of the half-diagonal."""
+    model, _, white = vignetted_white
+    fit = fit_lattice(white, model.lattice, black_level=model.black_level)
     ij, xy = model.lattice.centres(3280, 3280)
     fx, fy = fit.lattice.centre(ij[:, 0], ij[:, 1])
     outer = np.hypot(xy[:, 0] - model.lattice.origin_x, xy[:, 1] - model.lattice.origin_y) > 0.6 * 1640 * math.sqrt(2)
     assert fit.n_cut_blocks > 0
     assert np.sqrt(np.mean(np.hypot(fx - xy[:, 0], fy - xy[:, 1])[outer] ** 2)) < 0.03
+
+
+@pytest.mark.slow
+def test_the_second_stop_is_measured_from_the_white_images_micro_images(vignetted_white):
+    """The share of each micro-image's aperture that the stop leaves, as the depth fit models it,
+    agrees with the simulator's stop over the field (its cut edge within 4 % of the aperture's
+    diameter, the typical camera's blur and rim response included); a white without one gives none."""
+    from analysis.calibration.second_stop_fit import fit_second_stop
+    from analysis.camera.second_stop import visible_fraction
+
+    model, camera, white = vignetted_white
+    truth = camera.second_stop(model)
+    o = model.optics
+    radius_m = o.aperture_diameter_m / 2
+    slope = math.log(0.75) / o.micro_image_radius_px ** 2
+    stop = fit_second_stop(white, model, radius_px=o.micro_image_radius_px, response_slope=slope)
+    assert stop is not None
+    s = np.linspace(0.0, 3280 / math.sqrt(2) * o.pixel_pitch_m / o.projection_factor, 12)
+    # Where the stop's edge crosses the line through the axis: R2 - k s from the aperture's centre.
+    edge, true_edge = (np.clip(p.radius_m - p.shift_per_m * s, -radius_m, radius_m) for p in (stop, truth))
+    assert np.max(np.abs(edge - true_edge)) < 0.04 * 2 * radius_m, (edge, true_edge)
+    np.testing.assert_allclose(visible_fraction(radius_m, stop.radius_m, stop.shift_per_m * s),
+                               visible_fraction(radius_m, truth.radius_m, truth.shift_per_m * s), atol=0.03)
+    assert fit_second_stop(render_white_image(model, seed=3), model, radius_px=o.micro_image_radius_px) is None
 
 
 # --- white-image choice --------------------------------------------------------------------
@@ -260,6 +291,11 @@ def test_cache_hit_skips_the_fit(white_folder, tmp_path):
     assert (second.white_sha1, second.white_name, second.fit_n_lenses) == \
         (first.white_sha1, first.white_name, first.fit_n_lenses)
     assert not any(p.name.endswith(".tmp") for p in path.parent.iterdir())
+    # A second stop, where the white image shows one, is kept with the rest.
+    from analysis.camera.second_stop import SecondStop
+    stop = SecondStop(shift_per_m=1.25, radius_m=0.0058)
+    save_calibration(replace(first, second_stop=stop), path)
+    assert read_calibration(path).second_stop == stop and second.second_stop is None
 
 
 def test_cache_files_of_older_formats_are_removed(white_folder, tmp_path):
@@ -383,6 +419,7 @@ def test_cli_prints_choice_and_fit(white_folder, tmp_path, capsys):
     assert out["from_cache"] is False and Path(out["cache_file"]).is_file()
     assert out["lattice"]["pitch_px"] == pytest.approx(
         CameraModel.from_metadata(simulated_camera_metadata(size=SIZE)).lattice.pitch_px, rel=1e-4)
+    assert out["second_stop"] is None  # the ideal camera's micro-images are whole to the corners
     assert main(["calibrate", str(white_folder), "--white", "mod_0007", "--cache", str(cache)]) == 0
     assert json.loads(capsys.readouterr().out)["from_cache"] is True
     assert main(["calibrate", str(white_folder), "--white", "MOD_0042"]) == 2

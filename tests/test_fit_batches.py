@@ -11,8 +11,8 @@ from analysis.camera.model import CameraModel
 from analysis.lightfield.table import build_table_from_model
 from analysis.pipeline.tables import FIT_TABLE_RIM_PX
 from analysis.depth.deblend import seen_twice
-from analysis.depth.rayfit import (RENDER_POINTS, FitGrid, RayFit, aperture_per_lens_plane, fit_rays, pixel_footprint,
-                                    render_fits)
+from analysis.depth.footprint import pixel_footprint
+from analysis.depth.rayfit import RENDER_POINTS, FitGrid, RayFit, aperture_per_lens_plane, fit_rays, render_fits
 from analysis.depth.render_kernels import lit_fraction
 from analysis.depth.refine import COARSE_TEMPERATURE, FINE_GRID, WIDE_FINE_GRID, RayFitter
 from analysis.depth.table_index import TableIndex

@@ -14,7 +14,8 @@ from analysis.lightfield.table import build_table_from_model
 from analysis.formats.particle_table import read_csv
 from analysis.pipeline.tables import FIT_TABLE_RIM_PX, get_table
 from analysis.cache import Cache
-from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays, pixel_footprint
+from analysis.depth.footprint import pixel_footprint
+from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays
 from analysis.depth.sample_noise import SampleNoise
 from analysis.depth.candidate_kernels import censored_intensity
 from analysis.depth.rayfit_kernels import GridPass, _count_inside, _position_offsets, grid_costs
@@ -430,6 +431,44 @@ def test_depth_scale_of_blurred_particles_is_unbiased():
     assert abs(np.mean(ratio) - 1.0) < 0.005, ratio  # evenly spaced pixel points: 0.011
 
 
+def test_particles_a_second_stop_cuts_keep_their_depth():
+    """Toward the corners a second stop cuts the aperture (cat's-eye micro-images); the devignetted
+    samples are then light per unit of what passes it, and a model that lets the whole aperture light
+    them took noise-free particles there for nearer focus than they are. Modelled, the stop leaves
+    their depth scale as unbiased as the centre's."""
+    from analysis.depth.refine import FINE_GRID
+    from analysis.simulation.camera_effects import CameraEffects
+    from analysis.simulation.realism import Realism
+
+    full = CameraModel.from_metadata(simulated_camera_metadata())
+    start, size = 3280 - 360, 320  # a window near the corner, beyond the stop's onset
+    lat = full.lattice
+    model = dataclasses.replace(full, width=size, height=size, lattice=lat.with_changes(
+        origin_x=lat.origin_x - start, origin_y=lat.origin_y - start))
+    optics = model.optics
+    camera = CameraEffects.build(Realism(vignetting_corner_cut=0.3, vignetting_onset=0.45), serial="A202160042")
+    stop = camera.second_stop(model)
+    table = build_table_from_model(model, white_coverage(model, camera=camera), rim_px=FIT_TABLE_RIM_PX)
+    pitch = float(np.hypot(*table.basis_m[:, 0]))
+    centre = table.lens_xy_m.mean(axis=0)
+    g = (np.arange(3) - 1) * 9.0 * pitch
+    s_hat = np.column_stack([np.repeat(g, 3), np.tile(g, 3)]) + centre + np.linspace(0.0, 0.45, 9)[:, None] * pitch
+    blur = np.linspace(2.5, 4.0, 9) * np.tile([1.0, -1.0], 5)[:9]
+    c = blur * optics.lens_pitch_m / optics.aperture_diameter_m
+    z = np.asarray(optics.z_of_alpha(1.0 / (1.0 - c)))
+    particles = Particles(s_hat[:, 0] * z / optics.exit_pupil_m, s_hat[:, 1] * z / optics.exit_pupil_m, z,
+                          np.full(9, 1800.0))
+    image = render_exposure(model, particles, seed=5, noise=False, camera=camera)
+    ratios = {}
+    for name, modelled in (("modelled", stop), ("whole aperture", None)):
+        fit = fit_rays(image, table, s_hat[:, 0], s_hat[:, 1], 1.0 / (1.0 - c), background=0.0,
+                       aperture_per_lens_plane=aperture_per_lens_plane(optics), fine=FINE_GRID, second_stop=modelled)
+        ratios[name] = (1.0 - 1.0 / fit.alpha) / c
+    assert np.all(np.abs(ratios["modelled"] - 1.0) < 0.03), ratios
+    assert abs(np.mean(ratios["modelled"]) - 1.0) < 0.005, ratios
+    assert np.mean(ratios["whole aperture"]) < np.mean(ratios["modelled"]) - 0.01, ratios  # the bias it removes
+
+
 @pytest.mark.parametrize("blur", [1.3, 2.5])
 def test_a_saturated_particle_keeps_its_depth(blur):
     """Saturated samples are lower bounds (censored), not values: a particle bright enough to clip
@@ -577,7 +616,7 @@ def test_pixel_points_for_a_wider_blur_keep_the_fitted_light_of_strongly_blurred
     came out 0.78x as bright as under a 0.3 px blur (0.66x at worst), and misfit their light more.
     :func:`points_per_side` gives the last estimate (``sharpen_blurred``) points enough."""
     from analysis.depth.deblend import DEBLEND_RECENTRE
-    from analysis.depth.rayfit import points_per_side
+    from analysis.depth.footprint import points_per_side
     from analysis.depth.refine import COARSE_LATERAL_PITCHES, WIDE_FINE_GRID
     from analysis.simulation.camera_effects import CameraEffects
     from analysis.simulation.realism import Realism

@@ -17,6 +17,7 @@ import numpy as np
 
 from analysis.cache import remove_older_versions
 from analysis.camera.model import CameraModel, Lattice, Optics
+from analysis.camera.second_stop import SecondStop
 from analysis.errors import CalibrationError
 from analysis.formats.atomic_write import atomic_path
 from analysis.formats.mapped_npz import map_members
@@ -32,7 +33,8 @@ log = logging.getLogger(__name__)
 # Bump when the cache file's content or meaning changes; it is part of the file name.
 # 2: the micro-image profile (optical blur, aperture image radius, rim response) in the header.
 # 3: the lattice fitted without the micro-images a second stop cuts (analysis.calibration.cut_lenses).
-CACHE_VERSION = 3
+# 4: the second stop itself (analysis.calibration.second_stop_fit) in the header.
+CACHE_VERSION = 4
 
 
 def cache_path(cache_dir: Path, serial: str | None, white_sha1: str) -> Path:
@@ -50,6 +52,7 @@ def save_calibration(calibration: Calibration, path: Path) -> None:
         "focus_step": calibration.focus_step, "fit_rms_px": calibration.fit_rms_px,
         "fit_n_lenses": calibration.fit_n_lenses, "fit_centroid_rms_px": calibration.fit_centroid_rms_px,
         "profile": None if calibration.profile is None else calibration.profile.to_dict(),
+        "second_stop": None if calibration.second_stop is None else calibration.second_stop.to_dict(),
         "lattice": {"origin_x": lat.origin_x, "origin_y": lat.origin_y, "pitch_px": lat.pitch_px,
                     "rotation_rad": lat.rotation_rad, "scale_x": lat.scale_x, "scale_y": lat.scale_y},
     }
@@ -94,7 +97,8 @@ def read_calibration(path: Path, *, white_sha1: str | None = None) -> Calibratio
                            focus_step=header["focus_step"], model=model, devignetting=devignetting,
                            fit_rms_px=float(header["fit_rms_px"]), fit_n_lenses=int(header["fit_n_lenses"]),
                            fit_centroid_rms_px=float(header["fit_centroid_rms_px"]), from_cache=True,
-                           profile=None if header["profile"] is None else MicroImageProfile.from_dict(header["profile"]))
+                           profile=None if header["profile"] is None else MicroImageProfile.from_dict(header["profile"]),
+                           second_stop=None if header["second_stop"] is None else SecondStop.from_dict(header["second_stop"]))
     except CalibrationError:
         raise
     except (OSError, EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile) as exc:

@@ -8,17 +8,19 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from analysis.camera.model import IDEAL_POINT_SPREAD_PX, CameraModel, Lattice
+from analysis.camera.second_stop import SecondStop
 from analysis.errors import CalibrationError, MetadataError
 from analysis.formats.whites import WhiteImage
 
 from .defects import DefectMap
 from .lattice_fit import LatticeFit, fit_lattice
 from .profile import MicroImageProfile, fit_micro_image_profile
+from .second_stop_fit import fit_second_stop
 
 #: The point spread (sigma, px) the depth fit models when the white image gives none: the ideal
 #: optics' (camera-model.md step 4).
@@ -64,6 +66,9 @@ class Calibration:
         Hot, stuck and dead pixels of the camera, from all its calibration frames
         (:func:`analysis.calibration.cache.load_calibration`); the look-up tables leave them out.
         None when not searched.
+    second_stop : SecondStop or None
+        The main lens's second stop, from how the white image's micro-images shrink toward the
+        corners (:func:`analysis.calibration.second_stop_fit.fit_second_stop`); None when they do not.
     """
 
     serial: str | None
@@ -79,6 +84,7 @@ class Calibration:
     from_cache: bool = False
     profile: MicroImageProfile | None = None
     defects: DefectMap | None = None
+    second_stop: SecondStop | None = None
 
     @property
     def lattice(self) -> Lattice:
@@ -149,8 +155,11 @@ def calibrate(white: WhiteImage, *, fallback_metadata: dict | None = None) -> Ca
     devignetting = raw.astype(np.float32)
     devignetting -= np.float32(model.black_level)
     devignetting *= np.float32(1.0 / (model.white_level - model.black_level))
-    return Calibration(serial=white.serial, white_name=white.name, white_sha1=white.sha1,
-                       zoom_step=white.zoom_step, focus_step=white.focus_step,
-                       model=model.with_lattice(fit.lattice), devignetting=devignetting,
-                       fit_rms_px=fit.rms_px, fit_n_lenses=fit.n_lenses,
-                       fit_centroid_rms_px=fit.centroid_rms_px, profile=profile)
+    calibration = Calibration(serial=white.serial, white_name=white.name, white_sha1=white.sha1,
+                              zoom_step=white.zoom_step, focus_step=white.focus_step,
+                              model=model.with_lattice(fit.lattice), devignetting=devignetting,
+                              fit_rms_px=fit.rms_px, fit_n_lenses=fit.n_lenses,
+                              fit_centroid_rms_px=fit.centroid_rms_px, profile=profile)
+    radius = model.optics.micro_image_radius_px if profile is None else profile.radius_px
+    return replace(calibration, second_stop=fit_second_stop(raw, calibration.model, radius_px=radius,
+                                                            response_slope=calibration.response_slope))

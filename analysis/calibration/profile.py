@@ -6,7 +6,7 @@ times a pixel response that falls toward the rim, ``rim_response ** ((r / radius
 distance ``r`` from the centre, times the lens's own gain (its transmission and the chief ray's
 ``cos^4``); that light is integrated over each pixel's area and blurred by a Gaussian of sigma
 ``blur_px`` (diffraction, aberration, cross-talk), and the tails of neighbouring micro-images add.
-This is the pixel model of the depth fit (:func:`analysis.depth.rayfit.pixel_footprint`: a pixel's
+This is the pixel model of the depth fit (:func:`analysis.depth.footprint.pixel_footprint`: a pixel's
 area blurred by a Gaussian), so the fitted ``blur_px`` is the one the fit should use.
 
 :func:`fit_micro_image_profile` fits ``blur_px``, ``radius_px`` and ``rim_response`` (and one gain

@@ -17,7 +17,8 @@ from analysis.detection.curves import Peaks
 from analysis.lightfield.table import LightFieldTable
 
 from .quality import EXTENDED_POINT_OVER_SPREAD, converges
-from .rayfit import RENDER_POINTS, FitGrid, RayFit, pattern_overlap, points_per_side
+from .footprint import points_per_side
+from .rayfit import RENDER_POINTS, FitGrid, RayFit, pattern_overlap
 from .refine import (FINE_GRID, FINE_TEMPERATURE, PROBE_FRACTION, PROBE_GRID, PROBE_HALF_RANGE, PROBE_RESIDUAL,
     SAME_DEPTH_SIGMAS, WIDE_FINE_GRID, WIDE_PROBE_GRID, RayFitter, accept, moved, outshines_misfit, replace_fits)
 from .sample_noise import SampleNoise
@@ -169,7 +170,7 @@ def sharpen_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit,
                     noise: SampleNoise | None = None) -> tuple[Peaks, RayFit]:
     """The strongly blurred particles' last estimate: refitted once more, with every other
     particle's light taken off, with as many pixel points as the camera's blur needs to reach
-    every pixel a lens's patch of light spreads to (:func:`analysis.depth.rayfit.points_per_side`),
+    every pixel a lens's patch of light spreads to (:func:`analysis.depth.footprint.points_per_side`),
     and the depth at the vertex of the depth profile's parabola, not the candidates' mean
     (``FitGrid.vertex``): on tuning seeds 27-30 the off-focus ball's realistic depth error 5.3 ->
     4.4 % (all effects), through ideal optics 3.44 -> 3.42 %; the clouds and shadowing pairs of
@@ -202,7 +203,7 @@ def _refit_where_acceptable(fitter: RayFitter, peaks: Peaks, fit: RayFit, rows: 
                             wide_pixels: bool = False, vertex: bool = False,
                             noise: SampleNoise | None = None, keep_prior: bool = True) -> tuple[Peaks, RayFit]:
     """``rows`` refitted with every other fit's light taken off, where the refit is acceptable;
-    with ``wide_pixels``, pixels as :func:`~analysis.depth.rayfit.points_per_side` gives them; with
+    with ``wide_pixels``, pixels as :func:`~analysis.depth.footprint.points_per_side` gives them; with
     ``vertex``, depths from the depth profile's vertex (:class:`~analysis.depth.rayfit.FitGrid`);
     with ``noise``, samples weighed by it (:func:`~analysis.depth.rayfit.fit_rays`); with
     ``keep_prior``, each with the depth prior its fit was made with."""
@@ -259,6 +260,7 @@ def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
                                         fitter.blur_radius_m(fit.alpha[faint[rows]]) + 0.5 * fitter.pitch_m,
                                         aperture_per_lens_plane=fitter.aperture_per_lens_plane,
                                         blur_px=fitter.blur_px, response_slope=fitter.response_slope,
+                                        second_stop=fitter.second_stop,
                                         cache=fitter.cache)
     alike = overlap > SAME_PATTERN
     weak[faint[alike]] = True

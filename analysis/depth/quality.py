@@ -117,7 +117,8 @@ def _patterns(fitter: RayFitter, fit: RayFit, explained: np.ndarray, *,
                          background=fitter.background, explained=explained,
                          aperture_per_lens_plane=fitter.aperture_per_lens_plane,
                          spread_m=fitter.pitch_m if spread else None, blur_px=fitter.blur_px,
-                         response_slope=fitter.response_slope, saturation=fitter.saturation, cache=fitter.cache).T
+                         response_slope=fitter.response_slope, second_stop=fitter.second_stop,
+                         saturation=fitter.saturation, cache=fitter.cache).T
 
 
 def drop_extended(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, RayFit, np.ndarray]:

@@ -20,20 +20,20 @@ brightness blurs away when the blur is under a lens pitch or two.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, fields, replace
 from typing import Any, Callable, NamedTuple
 
 import numba
 import numpy as np
-from scipy.special import ndtr
 
 from analysis.cache import Cache
 from analysis.camera.model import IDEAL_POINT_SPREAD_PX
+from analysis.camera.second_stop import SecondStop
 from analysis.lightfield.table import LightFieldTable
 
 from analysis.depth import rayfit_kernels as kern
 from analysis.depth import render_kernels
+from .footprint import pixel_footprint, points_per_side
 from .sample_noise import SampleNoise
 from .table_index import Gathered, TableIndex, table_index
 
@@ -144,7 +144,7 @@ class FitGrid(NamedTuple):
 #: told no other (a calibration estimates the camera's own from its white image).
 DEFAULT_BLUR_PX = IDEAL_POINT_SPREAD_PX
 #: Footprint points per side of a render (:func:`render_fits`) under the ideal optics' blur
-#: (:func:`points_per_side`).
+#: (:func:`~analysis.depth.footprint.points_per_side`).
 RENDER_POINTS = 3
 #: ... and of the render that the detection passes over what the fits leave take off
 #: (``analysis.pipeline.passes``). Blurred over 11-13 pitches, a particle puts a patch under a pixel
@@ -188,6 +188,7 @@ def unexplained_light(image: np.ndarray, table: LightFieldTable, sx_m: np.ndarra
 def point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius_m: np.ndarray, *,
                   background: float | np.ndarray, explained: np.ndarray, aperture_per_lens_plane: float,
                   spread_m: float | None, blur_px: float = DEFAULT_BLUR_PX, response_slope: float = 0.0,
+                  second_stop: SecondStop | None = None,
                   saturation: float = 4095.0, cache: Cache | None = None) -> np.ndarray:
     """Per fit, how much of the variation of the light within the lenses (each lens's own mean
     level taken out) its point-source pattern explains, and how much the same fit spread over a
@@ -203,7 +204,7 @@ def point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius
     taken off first; saturated samples are left out.
 
     The patterns are rendered with as many pixel points as the camera's blur needs
-    (:func:`points_per_side`): with the ideal optics' 3 x 3 under a 0.8 px blur, a point blurred
+    (:func:`~analysis.depth.footprint.points_per_side`): with the ideal optics' 3 x 3 under a 0.8 px blur, a point blurred
     over 8 pitches or more rendered narrower than its light falls, and a source spread over a pitch
     matched that light better than the point did (realistic off-focus ball of tuning seed 27, point
     over spread, medians: 0.73 at 8-11 pitches, 0.61 beyond; so rendered, 1.18 and 1.54).
@@ -213,21 +214,23 @@ def point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius
     def part(rows: slice) -> np.ndarray:
         return _point_pattern(image, table, fit.take(rows), radius[rows], background=background,
                               explained=explained, aperture_per_lens_plane=aperture_per_lens_plane,
-                              blur_px=blur_px, response_slope=response_slope, saturation=saturation,
+                              blur_px=blur_px, response_slope=response_slope, second_stop=second_stop,
+                              saturation=saturation,
                               spread_m=spread_m, cache=cache)
     return _in_chunks(len(fit), part, columns=2)
 
 
 def _point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius_m: np.ndarray, *,
                    background: float | np.ndarray, explained: np.ndarray, aperture_per_lens_plane: float,
-                   blur_px: float, response_slope: float, saturation: float, spread_m: float | None,
+                   blur_px: float, response_slope: float, second_stop: SecondStop | None, saturation: float,
+                   spread_m: float | None,
                    cache: Cache | None) -> np.ndarray:
     n = len(fit)
     idx = table_index(table, cache)
     g = idx.gather(fit.sx_m, fit.sy_m, radius_m)
     raw = np.ascontiguousarray(image).reshape(-1)[table.pixel_index[g.ids]].astype(np.float64)
     uv = idx.uv(g.ids)
-    cells = idx.cells(aperture_per_lens_plane, response_slope)
+    cells = idx.cells(aperture_per_lens_plane, response_slope, second_stop)
     points = points_per_side(RENDER_POINTS, blur_px)
     own = _render_gathered(fit, idx, g, uv, cells, blur_px, points)
     spread = None
@@ -250,6 +253,7 @@ def _point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radiu
 
 def pattern_overlap(table: LightFieldTable, fit: RayFit, other: RayFit, radius_m: np.ndarray, *,
                     aperture_per_lens_plane: float, blur_px: float = DEFAULT_BLUR_PX, response_slope: float = 0.0,
+                    second_stop: SecondStop | None = None,
                     cache: Cache | None = None) -> np.ndarray:
     """Per row, how alike the light of ``fit`` and of ``other`` (row for row) falls within the lenses
     within ``radius_m`` of ``fit``: the squared correlation of their renders, each lens's mean
@@ -263,7 +267,7 @@ def pattern_overlap(table: LightFieldTable, fit: RayFit, other: RayFit, radius_m
         raise ValueError(f"{len(fit)} fits against {len(other)} others")
     idx = table_index(table, cache)
     radius = _points(fit.sx_m, radius_m)[1]
-    cells = idx.cells(aperture_per_lens_plane, response_slope)
+    cells = idx.cells(aperture_per_lens_plane, response_slope, second_stop)
 
     def part(rows: slice) -> np.ndarray:
         one, two = fit.take(rows), other.take(rows)
@@ -339,10 +343,11 @@ def _sum_per_point(values: np.ndarray, g: Gathered, n: int) -> np.ndarray:
 
 
 def render_fits(table: LightFieldTable, fit: RayFit, *, aperture_per_lens_plane: float, blur_px: float = DEFAULT_BLUR_PX,
-                response_slope: float = 0.0, out: np.ndarray | None = None, cache: Cache | None = None,
+                response_slope: float = 0.0, second_stop: SecondStop | None = None, out: np.ndarray | None = None,
+                cache: Cache | None = None,
                 points: int = RENDER_POINTS) -> np.ndarray:
     """The light that fitted particles put on each sample of ``table`` (devignetted DN), each pixel
-    modelled as ``points`` x ``points`` points (:func:`pixel_footprint`).
+    modelled as ``points`` x ``points`` points (:func:`~analysis.depth.footprint.pixel_footprint`).
 
     Returns
     -------
@@ -356,8 +361,8 @@ def render_fits(table: LightFieldTable, fit: RayFit, *, aperture_per_lens_plane:
         return out
     reach = np.abs(1.0 - 1.0 / fit.alpha) * idx.radius_m + 1.8 * idx.pitch_m
     g = idx.gather(fit.sx_m, fit.sy_m, reach)
-    light = _render_gathered(fit, idx, g, idx.uv(g.ids), idx.cells(aperture_per_lens_plane, response_slope), blur_px,
-                             points)
+    cells = idx.cells(aperture_per_lens_plane, response_slope, second_stop)
+    light = _render_gathered(fit, idx, g, idx.uv(g.ids), cells, blur_px, points)
     render_kernels.scatter_add(out, g.ids, light)
     return out
 
@@ -392,52 +397,11 @@ def aperture_per_lens_plane(optics: Any) -> float:
     return optics.aperture_m_per_px * optics.projection_factor / optics.pixel_pitch_m
 
 
-def points_per_side(nominal: int, blur_px: float) -> int:
-    """Footprint points per side for a pixel blurred by ``blur_px``: ``nominal`` (as a
-    :class:`FitGrid` or :data:`RENDER_POINTS` gives it, for the ideal optics' blur) or, for a wider
-    blur, the odd number nearest ``nominal`` times the blurred pixel's width over the ideal one's
-    (standard deviations), so the points stay about as far apart.
-
-    Why: a strongly blurred particle lights a patch of about a pixel in each lens, which the blur
-    spreads over the pixels around it, and points at a few quantiles of the spread miss the pixels
-    farther out: with 3 x 3 points under a 0.8 px blur, 40-54 % of the light of noise-free isolated
-    particles blurred over 10-11 pitches fell on samples the model left dark (25-29 % under the
-    ideal 0.5 px), and their fits came out 20-40 % too faint. The last estimate of strongly blurred
-    particles (:func:`analysis.depth.deblend.sharpen_blurred`) models pixels so.
-    """
-    if nominal <= 1:
-        return nominal
-    width = math.sqrt(1.0 / 12.0 + blur_px ** 2) / math.sqrt(1.0 / 12.0 + DEFAULT_BLUR_PX ** 2)
-    return max(nominal, 2 * round((nominal * width - 1.0) / 2.0) + 1)
-
-
-def pixel_footprint(n_side: int, blur_px: float) -> np.ndarray:
-    """Points (pixels) standing for one pixel's area blurred by a Gaussian: an ``n_side`` x
-    ``n_side`` grid at the quantiles ``(k + 1/2) / n_side`` of that spread along each axis, so
-    that each point stands for an equal share of the light (symmetric: a lopsided footprint shifts
-    every fitted position). Points spaced evenly with the spread's variance, as before, misjudge
-    how the few pixels of a strongly blurred particle's small lit patches are lit: on isolated
-    simulated particles its depth came out 1.1 % too far from focus, with these 0.1 %."""
-    if n_side <= 1:
-        return np.zeros((1, 2))  # the pixel centre alone
-    x = np.linspace(-0.5 - 5.0 * blur_px, 0.5 + 5.0 * blur_px, 2001)
-    if blur_px > 0:
-        # Cumulative distribution of a unit box convolved with a Gaussian of sd blur_px.
-        def g(y: np.ndarray) -> np.ndarray:
-            return y * ndtr(y / blur_px) + blur_px * np.exp(-0.5 * (y / blur_px) ** 2) / np.sqrt(2.0 * np.pi)
-        cdf = g(x + 0.5) - g(x - 0.5)
-    else:
-        cdf = np.clip(x + 0.5, 0.0, 1.0)
-    g1 = np.interp((np.arange(n_side) + 0.5) / n_side, cdf, x)
-    g1 = 0.5 * (g1 - g1[::-1])  # exactly symmetric
-    gx, gy = np.meshgrid(g1, g1)
-    return np.column_stack([gx.ravel(), gy.ravel()])
-
-
 def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m: np.ndarray,
              alpha0: np.ndarray, *, background: float | np.ndarray, aperture_per_lens_plane: float,
              alpha_half_range: float = 0.004, coarse: FitGrid = COARSE, fine: FitGrid = FINE,
              reach_pitches: float = 1.2, blur_px: float = DEFAULT_BLUR_PX, response_slope: float = 0.0,
+             second_stop: SecondStop | None = None,
              subtract: np.ndarray | None = None,
              own: RayFit | None = None, prior_alpha: np.ndarray | None = None,
              prior_sigma: np.ndarray | None = None, prior_outlier: float = 0.05, saturation: float = 4095.0,
@@ -484,6 +448,9 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
         The pixel response within a micro-image, ``ln(response)`` per squared pixel of offset from
         its centre (:attr:`analysis.calibration.calibrate.Calibration.response_slope`; 0: flat):
         each of a pixel's points counts by the response to the aperture point it sees.
+    second_stop : SecondStop, optional
+        The main lens's second stop (:attr:`analysis.calibration.calibrate.Calibration.second_stop`):
+        a pixel's points whose rays it blocks see no aperture, as in the white image.
     prior_alpha, prior_sigma, prior_outlier : ndarray of shape (n,), ndarray, float
         A prior on each particle's depth (e.g. :func:`analysis.depth.prior.neighbour_prior`): a
         Gaussian of this centre and width with probability ``1 - prior_outlier``, else uniform over
@@ -529,7 +496,7 @@ def fit_rays(image: np.ndarray, table: LightFieldTable, sx0_m: np.ndarray, sy0_m
     RayFit
     """
     idx = table_index(table, cache)
-    cells = idx.cells(aperture_per_lens_plane, response_slope)
+    cells = idx.cells(aperture_per_lens_plane, response_slope, second_stop)
     sx0 = np.asarray(sx0_m, dtype=np.float64).ravel()
     sy0 = np.asarray(sy0_m, dtype=np.float64).ravel()
     a0 = np.asarray(alpha0, dtype=np.float64).ravel()

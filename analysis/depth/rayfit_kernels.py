@@ -17,6 +17,7 @@ from numba import prange
 
 from .candidate_kernels import FASTMATH, censored_intensity, profile_vertex
 from .render_kernels import lit_fraction, point_response
+from .sample_apertures import apertures_seen, rim_samples
 
 #: A fine pass whose depth lies farther than this fraction of its half-window from the centre is
 #: run again about it (when the caller asks for it: ``recentre``).
@@ -35,6 +36,8 @@ class Cells(NamedTuple):
     pitch: float             # lens pitch
     response_k: float        # the pixel response falls as exp(response_k |u|^2) with the aperture
     #                          point u it sees (0: flat); see render_kernels.lit_fraction
+    stop_k: float            # a second stop passes the rays of aperture point u into the lens at s
+    stop_r2: float           # where |u + stop_k s|^2 <= stop_r2 (inf: no stop); see lit_fraction
 
 
 class GridPass(NamedTuple):
@@ -187,7 +190,7 @@ def grid_costs(centres, ptr, uv, values, root_w, censored, sx0, sy0, c_lo, c_hi,
     are skipped, and so are whole lenses and, within a lens, the rows of samples too far from the
     cell. Sums run over lenses and samples in the order of one candidate at a time.
     """
-    normals, half_sq, neigh_u, neigh_s, r_ap2, pitch, resp_k = cells
+    normals, half_sq, neigh_u, neigh_s, r_ap2, pitch, resp_k, stop_k, stop_r2 = cells
     n_c, half_lat, n_lat, sub = grid.n_depths, grid.half_lateral, grid.n_lateral, grid.footprint
     n_sub = sub.shape[0]
     n_lens = centres.shape[0]
@@ -228,8 +231,9 @@ def grid_costs(centres, ptr, uv, values, root_w, censored, sx0, sy0, c_lo, c_hi,
         s_max = max(s_max, np.sqrt(sub[q, 0] * sub[q, 0] + sub[q, 1] * sub[q, 1]))
     inner = max(r_ap - s_max, 0.0)
     inner2 = inner * inner * (1.0 - 1e-9)
-    is_inner, code, n_ap, used = _apertures_seen(uv, j_first, m, sub, neigh_u, r_ap2, inner2)
-    rim_ptr, rim_j, v_sorted, most = _rim_samples(ptr, uv, is_inner, n_ap)
+    is_inner, code, n_ap, used = apertures_seen(uv, ptr, centres, sub, neigh_u, neigh_s, r_ap2, inner2, stop_k,
+                                                 stop_r2)
+    rim_ptr, rim_j, v_sorted, most = rim_samples(ptr, uv, is_inner, n_ap)
     off_x, off_y, d0, d1, d2 = _position_offsets(half_lat, n_lat, normals)
     h0 = half_sq[0]
     h1 = half_sq[1]
@@ -404,77 +408,6 @@ def grid_costs(centres, ptr, uv, values, root_w, censored, sx0, sy0, c_lo, c_hi,
             cand[k, 2] = c
             k += 1
     return m, costs, cand, inten, lit
-
-
-@numba.njit(cache=True, fastmath=FASTMATH)
-def _apertures_seen(uv, j_first, m, sub, neigh_u, r_ap2, inner2):
-    """Per sample ``j_first + i``: whether it lies within ``inner`` (no crosstalk), and for the
-    others which aperture each point of its footprint sees (``code``: -1 its own, ``nb`` that of
-    neighbour ``nb`` by crosstalk, -2 none), how many see one (``n_ap``), and which (``used``: bit
-    ``w`` for aperture ``w - 1``), as :func:`analysis.depth.render_kernels.lit_fraction` decides it."""
-    n_sub = sub.shape[0]
-    # A point nearer the centre than the nearest neighbour's aperture (|neigh_u| - r_ap) sees none
-    # of theirs.
-    nu_min = np.inf
-    for nb in range(6):
-        nu_min = min(nu_min, np.sqrt(neigh_u[nb, 0] * neigh_u[nb, 0] + neigh_u[nb, 1] * neigh_u[nb, 1]))
-    no_neigh = max(nu_min - np.sqrt(r_ap2), 0.0) * (1.0 - 1e-9)
-    is_inner = np.empty(m, dtype=np.bool_)
-    code = np.full((m, n_sub), -1, dtype=np.int8)
-    n_ap = np.full(m, n_sub, dtype=np.int64)
-    used = np.ones(m, dtype=np.int64)
-    for i in range(m):
-        u0 = uv[j_first + i, 0]
-        v0 = uv[j_first + i, 1]
-        is_inner[i] = u0 * u0 + v0 * v0 <= inner2
-        if is_inner[i]:
-            continue
-        n = 0
-        bits = 0
-        for q in range(n_sub):
-            ux = u0 + sub[q, 0]
-            uy = v0 + sub[q, 1]
-            r2 = ux * ux + uy * uy
-            if r2 > r_ap2:
-                code[i, q] = -2
-                if r2 < no_neigh * no_neigh:
-                    continue
-                for nb in range(6):
-                    vx = ux + neigh_u[nb, 0]
-                    vy = uy + neigh_u[nb, 1]
-                    if vx * vx + vy * vy <= r_ap2:
-                        code[i, q] = nb
-                        break
-            if code[i, q] != -2:
-                n += 1
-                bits |= 1 << (code[i, q] + 1)
-        n_ap[i] = n
-        used[i] = bits
-    return is_inner, code, n_ap, used
-
-
-@numba.njit(cache=True)
-def _rim_samples(ptr, uv, is_inner, n_ap):
-    """Per lens: its rim samples that some aperture lights (``rim_j[rim_ptr[l]:rim_ptr[l + 1]]``,
-    in order), whether its samples run by non-increasing v (rows of the micro-image), and the
-    most samples of one lens."""
-    n_lens = ptr.size - 1
-    j_first = ptr[0] if n_lens > 0 else 0
-    rim_ptr = np.zeros(n_lens + 1, dtype=np.int64)
-    rim_j = np.empty(is_inner.size, dtype=np.int64)
-    v_sorted = np.ones(n_lens, dtype=np.bool_)
-    n_rim = 0
-    most = 0
-    for lens in range(n_lens):
-        most = max(most, ptr[lens + 1] - ptr[lens])
-        for j in range(ptr[lens], ptr[lens + 1]):
-            if not is_inner[j - j_first] and n_ap[j - j_first] > 0:
-                rim_j[n_rim] = j
-                n_rim += 1
-            if j > ptr[lens] and uv[j, 1] > uv[j - 1, 1]:
-                v_sorted[lens] = False
-        rim_ptr[lens + 1] = n_rim
-    return rim_ptr, rim_j, v_sorted, most
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)

@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 
 from analysis.cache import Cache
 from analysis.camera.image_grid import ImageGrid
+from analysis.camera.second_stop import SecondStop
 from analysis.detection.curves import Peaks, unique_indices
 from analysis.detection.rejections import Rejections
 from analysis.lightfield.table import LightFieldTable
@@ -147,6 +148,9 @@ class RayFitter:
         The pixel response within a micro-image that every fit and render models, as
         :func:`analysis.depth.rayfit.fit_rays` takes it (the calibration's
         :attr:`analysis.calibration.calibrate.Calibration.response_slope`; 0: flat).
+    second_stop : SecondStop, optional
+        The main lens's second stop that every fit and render models (the calibration's
+        :attr:`analysis.calibration.calibrate.Calibration.second_stop`; None: the whole aperture).
     """
 
     image: np.ndarray
@@ -165,6 +169,7 @@ class RayFitter:
     saturation: float = 4095.0
     blur_px: float = DEFAULT_BLUR_PX
     response_slope: float = 0.0
+    second_stop: SecondStop | None = None
 
     @property
     def pitch_m(self) -> float:
@@ -194,7 +199,7 @@ class RayFitter:
         settings = dict(background=self.background, aperture_per_lens_plane=self.aperture_per_lens_plane,
                         alpha_half_range=self.alpha_half_range, coarse=self.coarse, cache=self.cache,
                         saturation=self.saturation, blur_px=self.blur_px,
-                        response_slope=self.response_slope)
+                        response_slope=self.response_slope, second_stop=self.second_stop)
         settings.update(options)
         own = settings.get("own")
         if own is not None and settings.get("prior_alpha") is None:
@@ -232,7 +237,7 @@ class RayFitter:
             chunk = fit.take(np.arange(start, min(start + FIT_CHUNK, len(fit))))
             render_fits(self.table, chunk, aperture_per_lens_plane=self.aperture_per_lens_plane, out=out,
                         cache=self.cache, blur_px=self.blur_px,
-                        response_slope=self.response_slope, points=points)
+                        response_slope=self.response_slope, second_stop=self.second_stop, points=points)
         return out
 
     @property

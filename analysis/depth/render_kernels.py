@@ -47,12 +47,16 @@ def lit_fraction(u0, v0, cx, cy, sx, sy, c, cells, sub):
     for its blurred area. Relative to the part of the pixel that sees any aperture, because the
     devignetted value is light per unit of the white image, which is lit over that same part.
 
+    A point whose aperture point a second stop blocks (``cells.stop_k``, ``cells.stop_r2``: rays of
+    aperture point ``u`` into the lens at ``s`` pass where ``|u + stop_k s|^2 <= stop_r2``) sees no
+    aperture, in the exposure as in the white image.
+
     Each point counts by the pixel response to the light of the aperture point it sees,
     ``exp(response_k |u|^2)`` (``cells.response_k``; 0: alike), in the lit part and in the whole
     alike: the camera weighs the light of each ray by its angle, in the white image as in the
     exposure, before the blur spreads it. Under a wide blur near the rim a pixel's points see
     aperture points of very different response, and counting them alike biased depths by +2 %."""
-    normals, half_sq, neigh_u, neigh_s, r_ap2, _, resp_k = cells
+    normals, half_sq, neigh_u, neigh_s, r_ap2, _, resp_k, stop_k, stop_r2 = cells
     frac = 0.0
     n_ap = 0.0
     ox = sx + c * u0 - cx
@@ -62,6 +66,8 @@ def lit_fraction(u0, v0, cx, cy, sx, sy, c, cells, sub):
         uy = v0 + sub[q, 1]
         qx = ox + c * sub[q, 0]
         qy = oy + c * sub[q, 1]
+        lx = cx  # the lens whose aperture it sees
+        ly = cy
         if ux * ux + uy * uy > r_ap2:
             # Blurred into the neighbouring micro-image (crosstalk): there it sees that lens's
             # aperture point, and is lit if its ray enters that lens.
@@ -73,10 +79,14 @@ def lit_fraction(u0, v0, cx, cy, sx, sy, c, cells, sub):
                     qx = sx + c * vx - cx - neigh_s[nb, 0]
                     qy = sy + c * vy - cy - neigh_s[nb, 1]
                     ux, uy = vx, vy
+                    lx = cx + neigh_s[nb, 0]
+                    ly = cy + neigh_s[nb, 1]
                     found = True
                     break
             if not found:
                 continue
+        if (ux + stop_k * lx) ** 2 + (uy + stop_k * ly) ** 2 > stop_r2:
+            continue  # the second stop blocks its rays: it sees no aperture, as in the white image
         w = point_response(ux, uy, resp_k) if resp_k != 0.0 else 1.0  # to the aperture point it sees
         n_ap += w
         inside = True
@@ -93,7 +103,7 @@ def lit_fraction(u0, v0, cx, cy, sx, sy, c, cells, sub):
 @numba.njit(cache=True, parallel=True, fastmath=FASTMATH)
 def render_samples(centres, sample_ptr, lens_ptr, uv, sx, sy, c, intensity, cells, sub, out):
     # Each particle writes only its own gathered samples, so particles run in parallel.
-    normals, half_sq, neigh_u, neigh_s, r_ap2, _, _ = cells
+    normals, half_sq, neigh_u, neigh_s, r_ap2, _, _, _, _ = cells
     s_max = 0.0
     for q in range(sub.shape[0]):
         s_max = max(s_max, np.sqrt(sub[q, 0] * sub[q, 0] + sub[q, 1] * sub[q, 1]))

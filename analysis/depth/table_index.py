@@ -13,6 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from analysis.cache import Cache
+from analysis.camera.second_stop import SecondStop
 from analysis.lightfield.table import LightFieldTable
 
 from .rayfit_kernels import Cells
@@ -68,14 +69,16 @@ class TableIndex:
         """Memory held (the lens ranges and the tree's copy of the lens centres, roughly)."""
         return int(self.start.nbytes + 3 * self.table.lens_xy_m.nbytes)
 
-    def cells(self, aperture_per_lens_plane: float, response_slope: float = 0.0) -> Cells:
+    def cells(self, aperture_per_lens_plane: float, response_slope: float = 0.0,
+              second_stop: SecondStop | None = None) -> Cells:
         """The cell geometry for the kernels; ``aperture_per_lens_plane`` as
         :func:`analysis.depth.rayfit.aperture_per_lens_plane` gives it, ``response_slope`` (the
-        pixel response's ``ln`` per squared pixel of micro-image offset) as
-        :func:`analysis.depth.rayfit.fit_rays` takes it."""
+        pixel response's ``ln`` per squared pixel of micro-image offset) and ``second_stop`` as
+        :func:`analysis.depth.rayfit.fit_rays` takes them."""
+        stop_k, stop_r2 = (0.0, np.inf) if second_stop is None else (second_stop.shift_per_m, second_stop.radius_m ** 2)
         return Cells(self.normals, self.half_sq, self.neighbours * aperture_per_lens_plane, self.neighbours,
                      self.table.aperture_radius_m ** 2 * (1 + 1e-9), self.pitch_m,
-                     float(response_slope) / self.u_per_px ** 2)
+                     float(response_slope) / self.u_per_px ** 2, float(stop_k), float(stop_r2))
 
     def gather(self, sx: np.ndarray, sy: np.ndarray, reach: np.ndarray) -> Gathered:
         """The samples of the lenses within ``reach`` of each point ``(sx, sy)`` (lens-plane metres)."""

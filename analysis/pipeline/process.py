@@ -201,7 +201,8 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         merge_alpha=params.merge_slices * (float(alphas[1] - alphas[0]) if params.user_range
                                            else lattice_step(params.n_slices)),
         cache=cache, rejected=rejected, saturation=model.white_level,
-        blur_px=calibration.blur_px, response_slope=calibration.response_slope) if params.refine else None
+        blur_px=calibration.blur_px, response_slope=calibration.response_slope,
+        second_stop=calibration.second_stop) if params.refine else None
     # How much noisier than the typical ones each fit-table lens's samples are (extended light).
     lens_noise = samples.variance_ratio(background.per_lens(fit_table))
     if not params.user_range:

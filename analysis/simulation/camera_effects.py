@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from analysis.camera.model import CameraModel, Lattice
+from analysis.camera.second_stop import SecondStop
 from analysis.errors import ParameterError
 from .camera import DEFAULT_LENS, F01_SIZE
 from .realism import Realism
@@ -35,36 +36,17 @@ def serial_seed(serial: str, purpose: str) -> int:
     return int.from_bytes(digest[:8], "little")
 
 
-@dataclass(frozen=True)
-class SecondStop:
-    """A second stop of the main lens, as seen on the aperture plane.
-
-    From a point ``s`` on the MLA (metres from the axis), the rays through aperture point ``u``
-    pass the stop where ``|u + shift_per_m * s| <= radius_m``: a stop of radius ``R2`` a distance
-    ``z2`` behind the aperture (toward the MLA) projects so, with ``shift_per_m = z2 / (P - z2)``
-    and ``radius_m = R2 P / (P - z2)``.
-    """
-
-    shift_per_m: float
-    radius_m: float
-
-    @classmethod
-    def from_field(cls, model: CameraModel, *, corner_cut: float, onset: float) -> "SecondStop":
-        """The stop that starts to cut the aperture at ``onset`` of the sensor's half-diagonal and
-        cuts ``corner_cut`` of its diameter at the corner, for ``model``'s optics."""
-        optics = model.optics
-        if optics.exit_pupil_m is None:
-            raise ParameterError("vignetting by a second stop needs a finite lens-to-MLA distance; build the "
-                                 "model from simulated_camera_metadata()")
-        half_diagonal_m = math.hypot(F01_SIZE, F01_SIZE) / 2 * optics.pixel_pitch_m / optics.projection_factor
-        aperture_r = optics.aperture_diameter_m / 2
-        k = corner_cut * optics.aperture_diameter_m / (half_diagonal_m * (1.0 - onset))
-        return cls(shift_per_m=k, radius_m=aperture_r + k * onset * half_diagonal_m)
-
-    def physical(self, lens_to_mla_m: float) -> dict[str, float]:
-        """Distance behind the aperture and radius of the stop itself, metres."""
-        z2 = self.shift_per_m * lens_to_mla_m / (1.0 + self.shift_per_m)
-        return {"distance_behind_aperture_m": z2, "radius_m": self.radius_m * (lens_to_mla_m - z2) / lens_to_mla_m}
+def second_stop_from_field(model: CameraModel, *, corner_cut: float, onset: float) -> SecondStop:
+    """The stop that starts to cut the aperture at ``onset`` of the sensor's half-diagonal and cuts
+    ``corner_cut`` of its diameter at the corner, for ``model``'s optics."""
+    optics = model.optics
+    if optics.exit_pupil_m is None:
+        raise ParameterError("vignetting by a second stop needs a finite lens-to-MLA distance; build the "
+                             "model from simulated_camera_metadata()")
+    half_diagonal_m = math.hypot(F01_SIZE, F01_SIZE) / 2 * optics.pixel_pitch_m / optics.projection_factor
+    aperture_r = optics.aperture_diameter_m / 2
+    k = corner_cut * optics.aperture_diameter_m / (half_diagonal_m * (1.0 - onset))
+    return SecondStop(shift_per_m=k, radius_m=aperture_r + k * onset * half_diagonal_m)
 
 
 @dataclass(frozen=True)
@@ -161,7 +143,7 @@ class CameraEffects:
         Half the exponent ``n`` of the pixel response ``cos(theta)^n`` (0: flat).
     transmission : LensTransmission or None
     vignetting_corner_cut, vignetting_onset : float
-        The second stop (`SecondStop.from_field`); no stop when the cut is 0.
+        The second stop (`second_stop_from_field`); no stop when the cut is 0.
     defects : SensorDefects or None
     drift_px : tuple of float
         Shift of the lattice in exposures relative to the white images.
@@ -201,7 +183,7 @@ class CameraEffects:
         """The second stop for ``model``'s optics, or None."""
         if self.vignetting_corner_cut <= 0:
             return None
-        return SecondStop.from_field(model, corner_cut=self.vignetting_corner_cut, onset=self.vignetting_onset)
+        return second_stop_from_field(model, corner_cut=self.vignetting_corner_cut, onset=self.vignetting_onset)
 
     def lens_gain(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
         """Transmission of lenses ``(i, j)``; ones without a transmission spread."""

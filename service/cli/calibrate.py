@@ -51,6 +51,7 @@ def _report(calibration: Calibration, seconds: float, cache: Path | None, serial
                 "centroid_rms_px": calibration.fit_centroid_rms_px},
         "profile": None if calibration.profile is None else calibration.profile.to_dict(),
         "blur_px": calibration.blur_px,
+        "second_stop": None if calibration.second_stop is None else calibration.second_stop.to_dict(),
         "defects": None if calibration.defects is None else {
             "pixels": len(calibration.defects), "hot_or_stuck": calibration.defects.n_hot,
             "dead_or_dark": calibration.defects.n_dark, "frames": list(calibration.defects.frames),
