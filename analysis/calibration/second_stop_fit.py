@@ -38,20 +38,19 @@ MIN_CUT_BINS = 4
 MAX_MISFIT = 0.01
 
 
-def fit_second_stop(raw: np.ndarray, model: CameraModel, *, radius_px: float, response_slope: float = 0.0,
-                    defects: np.ndarray | None = None) -> SecondStop | None:
+def fit_second_stop(raw: np.ndarray, model: CameraModel, *, radius_px: float,
+                    response_slope: float = 0.0) -> SecondStop | None:
     """The second stop of the white image ``raw`` (of ``model``, its fitted lattice), or None when
     its micro-images show none (or none that two disks explain).
 
     ``radius_px``: the micro-images' radius; ``response_slope``: the pixel response's
     ``ln(response)`` per squared pixel of offset (:attr:`analysis.calibration.calibrate.Calibration.response_slope`):
-    a cut takes the rim's light, which counts less than the centre's."""
+    a cut takes the rim's light, which counts less than the centre's. Saturated pixels are left out;
+    the camera's defects are not known yet, and each bin's median stands against them."""
     h, w = raw.shape
     lattice = model.lattice
     image = balance_channels(raw, black_level=model.black_level)
     image[raw >= model.white_level] = np.nan
-    if defects is not None:
-        image[np.asarray(defects, dtype=bool)] = np.nan
     ij, _ = lattice.centres(w, h, margin_px=lattice.pitch_px)
     if len(ij) < N_BINS * MIN_BIN_LENSES:
         return None
@@ -88,7 +87,7 @@ def fit_second_stop(raw: np.ndarray, model: CameraModel, *, radius_px: float, re
                         bounds=([0.0, 1.0, 0.8], [10.0, 10.0, 1.2]))
     misfit = float(np.sqrt(np.mean(fit.fun ** 2)))
     q, r2, _ = fit.x
-    stop = SecondStop(shift_per_m=q * aperture_r / far, radius_m=r2 * aperture_r)
+    stop = SecondStop(shift_per_m=float(q * aperture_r / far), radius_m=float(r2 * aperture_r))
     if misfit > MAX_MISFIT or (r2 - 1.0) >= q:  # unexplained, or cutting no lens on the sensor
         log.warning("white image: micro-images shrink toward the corners (to %.0f %% of their area) in a way a second "
                     "stop does not explain (misfit %.3f); the depth fit models the whole aperture there",

@@ -8,7 +8,7 @@ aperture (toward the MLA, which lies ``P`` behind it) projects so, with ``shift_
 and ``radius_m = R2 P / (P - z2)``.
 
 The simulator renders with one (:mod:`analysis.simulation.camera_effects`); the calibration fits
-one to a white image's micro-image areas (:func:`analysis.calibration.cut_lenses.fit_second_stop`),
+one to a white image's micro-image areas (:func:`analysis.calibration.second_stop_fit.fit_second_stop`),
 and the depth fit counts a ray only where it passes (:mod:`analysis.depth.render_kernels`).
 """
 

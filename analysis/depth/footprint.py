@@ -13,8 +13,8 @@ from analysis.camera.model import IDEAL_POINT_SPREAD_PX
 
 def points_per_side(nominal: int, blur_px: float) -> int:
     """Footprint points per side for a pixel blurred by ``blur_px``: ``nominal`` (as a
-    :class:`analysis.depth.rayfit.FitGrid` or :data:`analysis.depth.rayfit.RENDER_POINTS` gives it, for the ideal optics' blur) or, for a wider
-    blur, the odd number nearest ``nominal`` times the blurred pixel's width over the ideal one's
+    :class:`analysis.depth.rayfit.FitGrid` or :data:`analysis.depth.rayfit.RENDER_POINTS` gives it,
+    for the ideal optics' blur) or, for a wider blur, the odd number nearest ``nominal`` times the blurred pixel's width over the ideal one's
     (standard deviations), so the points stay about as far apart.
 
     Why: a strongly blurred particle lights a patch of about a pixel in each lens, which the blur

@@ -204,10 +204,11 @@ def point_pattern(image: np.ndarray, table: LightFieldTable, fit: RayFit, radius
     taken off first; saturated samples are left out.
 
     The patterns are rendered with as many pixel points as the camera's blur needs
-    (:func:`~analysis.depth.footprint.points_per_side`): with the ideal optics' 3 x 3 under a 0.8 px blur, a point blurred
-    over 8 pitches or more rendered narrower than its light falls, and a source spread over a pitch
-    matched that light better than the point did (realistic off-focus ball of tuning seed 27, point
-    over spread, medians: 0.73 at 8-11 pitches, 0.61 beyond; so rendered, 1.18 and 1.54).
+    (:func:`~analysis.depth.footprint.points_per_side`): with the ideal optics' 3 x 3 under a 0.8 px
+    blur, a point blurred over 8 pitches or more rendered narrower than its light falls, and a source
+    spread over a pitch matched that light better than the point did (realistic off-focus ball of
+    tuning seed 27, point over spread, medians: 0.73 at 8-11 pitches, 0.61 beyond; so rendered, 1.18
+    and 1.54).
     """
     radius = _points(fit.sx_m, radius_m)[1]
 

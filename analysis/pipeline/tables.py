@@ -69,8 +69,8 @@ def get_table(calibration: Calibration, cache: Cache, *, grid_oversample: float 
             log.warning("look-up table cache %s unusable (%s); rebuilding it", path, exc)
             table = None
     if table is not None and not _built_for(table, calibration):
-        log.warning("look-up table cache %s was built for another lattice than its calibration's; rebuilding it",
-                    path)
+        log.warning("look-up table cache %s was built for another sensor or lattice than its calibration's; "
+                    "rebuilding it", path)
         table = None
     if table is None:
         table = build_table(calibration, grid_oversample=grid_oversample, rim_px=rim_px, min_weight=MIN_WEIGHT)
