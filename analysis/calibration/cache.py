@@ -34,7 +34,8 @@ log = logging.getLogger(__name__)
 # 2: the micro-image profile (optical blur, aperture image radius, rim response) in the header.
 # 3: the lattice fitted without the micro-images a second stop cuts (analysis.calibration.cut_lenses).
 # 4: the second stop itself (analysis.calibration.second_stop_fit) in the header.
-CACHE_VERSION = 4
+# 5: the second stop fitted with the optical blur's reach into the micro-images' central level.
+CACHE_VERSION = 5
 
 
 def cache_path(cache_dir: Path, serial: str | None, white_sha1: str) -> Path:

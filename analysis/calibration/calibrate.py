@@ -162,4 +162,5 @@ def calibrate(white: WhiteImage, *, fallback_metadata: dict | None = None) -> Ca
                               fit_centroid_rms_px=fit.centroid_rms_px, profile=profile)
     radius = model.optics.micro_image_radius_px if profile is None else profile.radius_px
     return replace(calibration, second_stop=fit_second_stop(raw, calibration.model, radius_px=radius,
-                                                            response_slope=calibration.response_slope))
+                                                            response_slope=calibration.response_slope,
+                                                            blur_px=calibration.blur_px))

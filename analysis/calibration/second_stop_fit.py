@@ -38,14 +38,15 @@ MIN_CUT_BINS = 4
 MAX_MISFIT = 0.01
 
 
-def fit_second_stop(raw: np.ndarray, model: CameraModel, *, radius_px: float,
-                    response_slope: float = 0.0) -> SecondStop | None:
+def fit_second_stop(raw: np.ndarray, model: CameraModel, *, radius_px: float, response_slope: float = 0.0,
+                    blur_px: float = 0.0) -> SecondStop | None:
     """The second stop of the white image ``raw`` (of ``model``, its fitted lattice), or None when
     its micro-images show none (or none that two disks explain).
 
     ``radius_px``: the micro-images' radius; ``response_slope``: the pixel response's
     ``ln(response)`` per squared pixel of offset (:attr:`analysis.calibration.calibrate.Calibration.response_slope`):
-    a cut takes the rim's light, which counts less than the centre's. Saturated pixels are left out;
+    a cut takes the rim's light, which counts less than the centre's; ``blur_px``: the optical blur,
+    which carries a cut's edge into the central level that the areas are measured against. Saturated pixels are left out;
     the camera's defects are not known yet, and each bin's median stands against them."""
     h, w = raw.shape
     lattice = model.lattice
@@ -71,7 +72,7 @@ def fit_second_stop(raw: np.ndarray, model: CameraModel, *, radius_px: float,
         shift = np.r_[0.0, q * aperture_r * distance / far]
         light = visible_fraction(aperture_r, r2 * aperture_r, shift, response_k, n_rings)
         central = visible_fraction(aperture_r, r2 * aperture_r, shift, response_k, n_rings,
-                                   within_m=0.5 * aperture_r)
+                                   within_m=0.5 * aperture_r, blur_m=blur_px * k_ap)
         return scale * (light[1:] / light[0]) / np.maximum(central[1:] / central[0], 1e-3)
 
     # Deep cuts measure larger than the share a two-disk stop leaves (by 2.7 % at 0.73 on the

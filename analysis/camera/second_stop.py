@@ -14,9 +14,11 @@ and the depth fit counts a ray only where it passes (:mod:`analysis.depth.render
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import ndtr
 
 
 @dataclass(frozen=True)
@@ -40,12 +42,14 @@ class SecondStop:
 
 
 def visible_fraction(aperture_radius_m: float, stop_radius_m: float, shift_m: np.ndarray,
-                     response_k: float = 0.0, n_rings: int = 48, within_m: float | None = None) -> np.ndarray:
+                     response_k: float = 0.0, n_rings: int = 48, within_m: float | None = None,
+                     blur_m: float = 0.0) -> np.ndarray:
     """Share of a micro-image's light that passes a stop of ``stop_radius_m`` shifted ``shift_m``
     (``shift_per_m * |s|``, one per lens) from the aperture of ``aperture_radius_m``, each aperture
     point counted by the pixel response ``exp(response_k |u|^2)`` (``u`` in metres; 0: alike), as
     a white image's micro-image areas measure it; of the aperture points within ``within_m`` of its
-    centre only, when given."""
+    centre only, when given, with the stop's edge blurred by a Gaussian of ``blur_m`` (the optical
+    blur in aperture metres: what a micro-image's centre receives from across a cut's edge)."""
     # Aperture points on rings of equal area, each ring sampled at angles spaced by about its width.
     reach = aperture_radius_m if within_m is None else min(within_m, aperture_radius_m)
     r = reach * np.sqrt((np.arange(n_rings) + 0.5) / n_rings)
@@ -63,5 +67,8 @@ def visible_fraction(aperture_radius_m: float, stop_radius_m: float, shift_m: np
     # derivatives).
     edge = 0.5 * reach / n_rings
     beyond = np.hypot(u[None, :, 0] + shift[:, None], u[None, :, 1]) - stop_radius_m
-    passes = np.clip(0.5 - beyond / (2.0 * edge), 0.0, 1.0)
+    if blur_m > 0:
+        passes = ndtr(-beyond / math.hypot(blur_m, edge))
+    else:
+        passes = np.clip(0.5 - beyond / (2.0 * edge), 0.0, 1.0)
     return (passes * w).sum(axis=1) / w.sum()
