@@ -36,8 +36,9 @@ if TYPE_CHECKING:
 
 # Bump when the saved layout changes, so stale caches are rebuilt, not misread.
 # 7: members aligned for memory mapping (analysis.formats.mapped_npz).
-# 8: built on the lattice fitted without the micro-images a second stop cuts (calibration cache v3): a
-#    table's file is named by its white image, not its lattice, so a new lattice fit needs a new version.
+# 8: built on the lattice fitted without the micro-images a second stop cuts (calibration cache v3).
+#    A table's file is named by its white image, not its lattice; since then
+#    analysis.pipeline.tables.get_table also rebuilds a table whose samples disagree with the lattice.
 TABLE_FORMAT_VERSION = 8
 
 # Empty lens sites kept around the lattice so that shifted samples near the edge still land
