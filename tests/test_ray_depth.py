@@ -15,24 +15,19 @@ from analysis.formats.particle_table import read_csv
 from analysis.pipeline.tables import FIT_TABLE_RIM_PX, get_table
 from analysis.cache import Cache
 from analysis.depth.footprint import pixel_footprint
-from analysis.depth.rayfit import FitGrid, RayFit, aperture_per_lens_plane, fit_rays
+from analysis.depth.rayfit import RayFit, aperture_per_lens_plane, fit_rays
 from analysis.depth.sample_noise import SampleNoise
 from analysis.depth.candidate_kernels import censored_intensity
 from analysis.depth.rayfit_kernels import GridPass, _count_inside, _position_offsets, grid_costs
 from analysis.depth.render_kernels import lit_fraction
-from analysis.depth.refine import COARSE_TEMPERATURE
 from analysis.depth.table_index import TableIndex
 from analysis.lightfield.samples import select_samples
 from analysis.simulation.scenarios import Particles
 from analysis.simulation.camera import simulated_camera_metadata
 from analysis.simulation.render import render_exposure, white_coverage
 from analysis.simulation.scenario_files import write_scenario
+from line_of_sight_scenes import COARSE, PIPELINE_COARSE, peaks_at
 from simulated_case import mean_nn_mm
-
-
-# fit_rays' default coarse pass with 17 depths, and the pipeline's (its defaults' 5 positions per side).
-COARSE = FitGrid(depths=17, lateral_pitches=0.4, positions=3, pixel_points=1, temperature=COARSE_TEMPERATURE)
-PIPELINE_COARSE = COARSE._replace(positions=5)
 
 
 @pytest.fixture(scope="module")
@@ -53,17 +48,6 @@ def scene(tmp_path_factory):
 
 def depth_error_over_nn(exposure, alpha, truth, nn):
     return (np.asarray(exposure.model.optics.z_of_alpha(alpha)) - truth["Z"]) / nn
-
-
-def _peaks_at(grid, fit):
-    """Peaks standing for ``fit``'s particles (one track each), at their fitted places."""
-    from analysis.detection.curves import Peaks
-
-    n = len(fit)
-    x, y = grid.to_pixels(fit.sx_m, fit.sy_m)
-    return Peaks(track=np.arange(n), alpha=fit.alpha, x=np.atleast_1d(x).astype(float),
-                 y=np.atleast_1d(y).astype(float), peak_height=np.ones(n), peak_width=np.ones(n),
-                 residual=fit.residual, prominence=np.ones(n))
 
 
 def test_fit_recovers_depth_of_defocused_particles_from_a_poor_start(scene):
@@ -336,7 +320,7 @@ def test_deblending_drops_a_particle_seen_twice(scene):
     twice = dataclasses.replace(twice, sx_m=twice.sx_m + 0.3 * pitch, alpha=twice.alpha + 0.0015)
     fits = RayFit.concat(first, twice)
     grid = table.grid
-    peaks = _peaks_at(grid, fits)
+    peaks = peaks_at(grid, fits)
     fitter = RayFitter(exposure.image, table, grid, background=noise.background, aperture_per_lens_plane=ratio,
                        alpha_half_range=0.004, coarse=PIPELINE_COARSE, min_intensity=8 * noise.sigma,
                        max_residual=0.35, merge_radius_px=1.5, merge_alpha=0.0026)
@@ -344,52 +328,6 @@ def test_deblending_drops_a_particle_seen_twice(scene):
     assert len(kept) == len(first)  # the copy is gone, every particle stays
     assert np.all(kept.track < len(first))
     assert np.allclose(fit.intensity, first.intensity, rtol=0.15)
-
-
-def _line_of_sight_scene(alphas, brightness):
-    """Particles on one chief ray (a shadowing pair when two), rendered on a small simulated sensor."""
-    model = CameraModel.from_metadata(simulated_camera_metadata(size=320))
-    optics = model.optics
-    table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
-    s_hat = 0.2 * table.basis_m[:, 0] + 0.1 * table.basis_m[:, 1]
-    z = np.array([float(optics.z_of_alpha(a)) for a in alphas])
-    ps = Particles(s_hat[0] * z / optics.exit_pupil_m, s_hat[1] * z / optics.exit_pupil_m, z,
-                   np.asarray(brightness, float))
-    return model, table, s_hat, render_exposure(model, ps, seed=5)
-
-
-def _one_fit(model, table, s_hat, image, alpha0):
-    from analysis.depth.refine import RayFitter
-
-    ratio = aperture_per_lens_plane(model.optics)
-    background = float(np.median((image.astype(float) - table.black_level)))
-    fitter = RayFitter(image, table, table.grid, background=background, aperture_per_lens_plane=ratio,
-                       alpha_half_range=0.004, coarse=PIPELINE_COARSE, min_intensity=100.0,
-                       max_residual=0.35, merge_radius_px=1.5, merge_alpha=0.0026)
-    fit = fitter.fit(np.array([s_hat[0]]), np.array([s_hat[1]]), np.array([alpha0]))
-    return fitter, _peaks_at(table.grid, fit), fit
-
-
-def test_a_fit_holding_two_particles_on_one_line_of_sight_is_split():
-    from analysis.depth.deblend import split_shared
-
-    truth = np.array([0.99810, 1.00297])  # a pair one fit took for one particle (shadowing seed 5)
-    model, table, s_hat, image = _line_of_sight_scene(truth, [1985.0, 1900.0])
-    fitter, peaks, fit = _one_fit(model, table, s_hat, image, 1.0023)
-    assert len(fit) == 1 and fit.intensity[0] > 0
-    split, split_fit = split_shared(fitter, peaks, fit, shadow_probe=0.0065, bright=0.5, misfit=0.5)
-    assert len(split) == 2
-    assert np.allclose(np.sort(split_fit.alpha), truth, atol=4e-4)
-    assert np.all(split_fit.residual < fit.residual)
-
-
-def test_a_single_particle_is_not_split():
-    from analysis.depth.deblend import split_shared
-
-    model, table, s_hat, image = _line_of_sight_scene([1.0028], [2600.0])
-    fitter, peaks, fit = _one_fit(model, table, s_hat, image, 1.0028)
-    split, _ = split_shared(fitter, peaks, fit, shadow_probe=0.0065, bright=0.5, misfit=0.5)
-    assert len(split) == 1
 
 
 def _isolated_particles(size, spacing_pitches, blur_pitches, *, camera=None):
@@ -551,41 +489,6 @@ def test_fits_beside_a_saturated_particle_do_not_take_its_light(brightness):
     assert np.all(ghosts.intensity < 0.2 * own.intensity[0]), ghosts.intensity
 
 
-def _pair_fits(alphas, truth_alphas, brightness):
-    """Two fits started at ``alphas`` on one chief ray, each refitted twice with the other's light
-    taken off (as the deblend refits them), on a rendering of particles at ``truth_alphas``."""
-    model, table, s_hat, image = _line_of_sight_scene(truth_alphas, brightness)
-    fitter, _, _ = _one_fit(model, table, s_hat, image, alphas[0])
-    n = len(alphas)
-    fit = fitter.fit(np.full(n, s_hat[0]), np.full(n, s_hat[1]), np.asarray(alphas, float),
-                     alpha_half_range=0.0005)
-    for _ in range(2):
-        fit = fitter.fit(fit.sx_m, fit.sy_m, fit.alpha, subtract=fitter.render(fit), own=fit,
-                         alpha_half_range=0.0005)
-    return fitter, fit
-
-
-def test_one_particle_fitted_twice_on_its_line_of_sight_is_one():
-    """Two fits of one blurred particle at nearly its depth (each refitted with the other's light
-    taken off, as deblending does): one fit explains the pixels better than the pair."""
-    from analysis.depth.deblend import one_particle
-
-    fitter, fit = _pair_fits([1.0116, 1.0128], [1.0122], [2400.0])
-    assert np.all(fit.intensity > 0.2 * fit.intensity.sum())  # both hold light of their own
-    faint, bright = np.argsort(fit.intensity)
-    assert one_particle(fitter, fit, np.array([faint]), np.array([bright])).all()
-
-
-def test_a_true_pair_on_one_line_of_sight_is_two():
-    from analysis.depth.deblend import one_particle
-
-    truth = [0.99810, 1.00297]  # the shadowing pair of the split test
-    fitter, fit = _pair_fits(truth, truth, [1985.0, 1900.0])
-    assert np.allclose(fit.alpha, truth, atol=4e-4)
-    faint, bright = np.argsort(fit.intensity)
-    assert not one_particle(fitter, fit, np.array([faint]), np.array([bright])).any()
-
-
 def test_recentring_the_fine_pass_reaches_the_depth_of_particles_under_a_wider_blur():
     """Under a 0.8 px blur (told), the coarse pass of pixel centres reads each lens's blurred spot of
     a particle blurred over 5-8 pitches as a larger one, a depth nearer focus, and the fine pass
@@ -669,7 +572,7 @@ def _first_fits(model, table, image, s_hat, alpha0, **options):
                        coarse=PIPELINE_COARSE._replace(lateral_pitches=COARSE_LATERAL_PITCHES), min_intensity=100.0,
                        max_residual=0.35, merge_radius_px=1.5, merge_alpha=0.0026, **options)
     first = fitter.fit(s_hat[:, 0], s_hat[:, 1], alpha0)
-    return fitter, _peaks_at(table.grid, first), first
+    return fitter, peaks_at(table.grid, first), first
 
 
 def test_refitting_crowded_blurred_particles_without_their_neighbours_light():
@@ -696,159 +599,6 @@ def test_refitting_crowded_blurred_particles_without_their_neighbours_light():
     # The same refit with the neighbours' light left in does not get there.
     plain = fitter.fit(first.sx_m, first.sy_m, first.alpha)
     assert rms(again) < 0.6 * rms(plain), (rms(plain), rms(again))
-
-
-def _refit_pair(alphas, truth_alphas, brightness):
-    """:func:`refit_blurred` on two fits on one chief ray (as :func:`_pair_fits` makes them)."""
-    from analysis.detection.rejections import Rejections
-    from analysis.depth.deblend import refit_blurred
-
-    fitter, fit = _pair_fits(alphas, truth_alphas, brightness)
-    fitter = dataclasses.replace(fitter, rejected=Rejections())
-    peaks = _peaks_at(fitter.grid, fit)
-    assert fitter.strongly_blurred(fit.alpha).all()
-    _, kept = refit_blurred(fitter, peaks, fit)
-    return fitter, kept
-
-
-def test_the_last_refit_drops_a_second_fit_of_one_blurred_particle():
-    """The last refit moves fits along their lines of sight after deblending's partner test: two fits
-    of one particle blurred over 7 pitches leave it as one, the other recorded as seen twice."""
-    fitter, kept = _refit_pair([1.0116, 1.0128], [1.0122], [2400.0])
-    assert len(kept) == 1 and abs(kept.alpha[0] - 1.0122) < 4e-4, kept.alpha
-    assert fitter.rejected.counts() == {"seen_twice": 1}
-
-
-def test_the_last_refit_keeps_a_blurred_pair_on_one_line_of_sight():
-    truth = [1.0100, 1.0160]
-    fitter, kept = _refit_pair(truth, truth, [2400.0, 2000.0])
-    assert len(kept) == 2 and np.allclose(np.sort(kept.alpha), truth, atol=4e-4), kept.alpha
-    assert len(fitter.rejected) == 0
-
-
-def _glint_image(model, s_hat, alpha, level_dn=3300.0):
-    """A glint 0.27 mm across (as held-out seed 10's) on the chief ray ``s_hat``, at the depth of
-    ``alpha``, alone on the sensor of :func:`_line_of_sight_scene`."""
-    from analysis.simulation.chamber import ChamberLight, ExtendedSource
-
-    z = float(model.optics.z_of_alpha(alpha))
-    glint = ExtendedSource(kind="glint", z_mm=z, x_mm=s_hat[0] * z / model.optics.exit_pupil_m,
-                           y_mm=s_hat[1] * z / model.optics.exit_pupil_m, sigma_mm=0.27, level_dn=level_dn)
-    return render_exposure(model, Particles(*(np.zeros(0),) * 4), seed=5, chamber=ChamberLight(sources=(glint,)))
-
-
-@pytest.mark.parametrize("alpha", [0.967, 1.03])
-def test_a_wide_glint_fits_as_a_point_but_shows_no_point_pattern(alpha):
-    """A glint 0.27 mm across far out of focus (seed 10's off-focus ball had one 11 mm behind focus,
-    which set the end of the depth range the survey found) fits as a blurred point with a small
-    misfit; the light in its lenses does not follow that point, while a particle's there does."""
-    from analysis.depth.quality import patterned
-
-    model, table, s_hat, particle = _line_of_sight_scene([alpha], [1000.0])
-    for image, is_point in ((particle, True), (_glint_image(model, s_hat, alpha), False)):
-        fitter, _, fit = _one_fit(model, table, s_hat, image, alpha)
-        assert fitter.acceptable(fit, 0.2)[0] and abs(fit.alpha[0] - alpha) < 0.003
-        assert patterned(fitter, fit, fitter.render(fit))[0] == is_point
-
-
-def test_a_faint_partner_in_focus_behind_a_brighter_one_is_kept():
-    """A pair on one line of sight, the fainter (a third of the light) in focus, the brighter
-    blurred over 1.5 pitches (held-out shadowing seed 11 lost such a partner): the fainter lights
-    its lens evenly, so no point pattern can vouch for it, but the pair explains the pixels more
-    than 1.3 times better than the brighter one alone."""
-    from analysis.depth.deblend import weak_partners
-
-    truth = [0.99480, 1.00030]
-    fitter, fit = _pair_fits(truth, truth, [2900.0, 950.0])
-    assert np.allclose(fit.alpha, truth, atol=4e-4), fit.alpha
-    faint = int(np.argmin(fit.intensity))
-    assert fit.intensity[faint] < 0.35 * fit.intensity.max()  # less light than a probe needs
-    assert not weak_partners(fitter, fit).any()
-
-
-def test_a_strongly_blurred_particle_converges_clearly_a_wide_glint_does_not():
-    """Blurred over 6 pitches, a lone particle's light is explained no better by its point pattern
-    than by the same light spread over a pitch (the ratio test fails it), but its pattern explains
-    most of the light's variation in its lenses; a wide glint's explains almost none."""
-    from analysis.depth.quality import converges
-
-    alpha = 1.02
-    model, table, s_hat, particle = _line_of_sight_scene([alpha], [600.0])
-    for image, clearly in ((particle, True), (_glint_image(model, s_hat, alpha), False)):
-        fitter, _, fit = _one_fit(model, table, s_hat, image, alpha)
-        explained = fitter.render(fit)
-        assert not converges(fitter, fit, explained)[0]
-        assert converges(fitter, fit, explained, clear=True)[0] == clearly
-
-
-def test_a_blurred_particle_in_a_glints_light_is_kept_where_its_light_clearly_converges():
-    """Far from focus, real particles in crowds sit in light nothing explains (missed neighbours',
-    a glint's): the extended test then asks whether their own light converges to a point. A lone
-    particle blurred over 6 pitches beside an in-focus glint fails the ratio test there, but its
-    pattern clearly explains its lenses' light, so it is kept."""
-    from analysis.depth.quality import converges, drop_extended, leftover_fraction
-
-    alpha = 1.02
-    model, table, s_hat, particle = _line_of_sight_scene([alpha], [600.0])
-    glint = _glint_image(model, s_hat + 4.0 * table.basis_m[:, 0], 1.0, level_dn=100.0)
-    image = np.clip(particle.astype(float) + glint - float(table.black_level), 0, 4095).astype(np.uint16)
-    fitter, peaks, fit = _one_fit(model, table, s_hat, image, alpha)
-    assert abs(fit.alpha[0] - alpha) < 0.002
-    explained = fitter.render(fit)
-    assert leftover_fraction(fitter, fit, explained)[0] > 0.5  # the glint's light is around it ...
-    assert leftover_fraction(fitter, fit, explained, reach_pitches=0.5)[0] > 0.4  # ... and on it
-    assert not converges(fitter, fit, explained)[0]
-    kept, _, _ = drop_extended(fitter, peaks, fit)
-    assert len(kept) == 1
-
-
-@pytest.mark.parametrize("alpha, brightness", [(1.02, 300.0), (0.975, 600.0)])
-def test_light_even_within_its_lenses_is_dropped_as_extended_though_a_fit_explains_it(alpha, brightness):
-    """The same light per lens as a blurred particle's, but spread evenly over each micro-image
-    (light that does not converge, as a reflection's edge the background model misses): a fit
-    there explains most of the light around it, so its shares pass, yet neither its point pattern
-    nor the same fit spread over a pitch follows that light. It is dropped; the particle is kept."""
-    import dataclasses
-
-    from analysis.depth.quality import drop_extended, leftover_fraction
-    from analysis.detection.rejections import Rejections
-
-    model, table, s_hat, particle = _line_of_sight_scene([alpha], [brightness])
-    raw = particle.astype(np.float64).reshape(-1)
-    light = (raw[table.pixel_index] - table.black_level) / table.weight
-    per_lens = np.bincount(table.lens, light) / np.bincount(table.lens)
-    even = raw.copy()
-    even[table.pixel_index] = (table.black_level + per_lens[table.lens] * table.weight
-                               + np.random.default_rng(1).normal(0.0, 2.0, table.pixel_index.size))
-    even = np.clip(np.round(even), 0, 4095).astype(np.uint16).reshape(particle.shape)
-    for image, is_point in ((particle, True), (even, False)):
-        fitter, peaks, fit = _one_fit(model, table, s_hat, image, alpha)
-        fitter = dataclasses.replace(fitter, rejected=Rejections())
-        assert leftover_fraction(fitter, fit)[0] < 0.3  # the shares alone would keep it
-        kept, _, _ = drop_extended(fitter, peaks, fit)
-        assert len(kept) == int(is_point)
-        assert fitter.rejected.counts() == ({} if is_point else {"extended": 1})
-
-
-def test_pattern_overlap_tells_one_particle_fitted_twice_from_a_pair_on_its_line_of_sight():
-    """Two fits of one particle blurred over 7 pitches, 0.0002 apart in alpha after the refits, light
-    their lenses alike: a fainter one there, with little evidence of its own, is the other's light
-    seen twice (a slightly wrong model leaves light that such a fit takes). True pairs on one line
-    of sight at other depths put their spots elsewhere in each lens."""
-    from analysis.depth.deblend import SAME_PATTERN
-    from analysis.depth.rayfit import pattern_overlap
-
-    def overlap(fitter, fit, rows, other):
-        return pattern_overlap(fitter.table, fit.take(rows), fit.take(other),
-                               fitter.blur_radius_m(fit.alpha[rows]) + 0.5 * fitter.pitch_m,
-                               aperture_per_lens_plane=fitter.aperture_per_lens_plane, blur_px=fitter.blur_px)
-
-    fitter, fit = _pair_fits([1.0116, 1.0128], [1.0122], [2400.0])
-    assert overlap(fitter, fit, np.array([0, 1, 0]), np.array([1, 0, 0])) == pytest.approx([0.9, 0.9, 1.0], abs=0.08)
-    for truth, brightness in (([1.0100, 1.0160], [2400.0, 2000.0]), ([0.99480, 1.00030], [2900.0, 950.0])):
-        fitter, fit = _pair_fits(truth, truth, brightness)
-        faint, bright = np.argsort(fit.intensity)
-        assert overlap(fitter, fit, np.array([faint]), np.array([bright]))[0] < 0.5 * SAME_PATTERN
 
 
 def test_the_last_estimate_of_blurred_particles_is_sharper():

@@ -18,7 +18,7 @@ from analysis.lightfield.table import LightFieldTable
 
 from .quality import EXTENDED_POINT_OVER_SPREAD, converges
 from .footprint import points_per_side
-from .rayfit import RENDER_POINTS, FitGrid, RayFit, pattern_overlap
+from .rayfit import RENDER_POINTS, FitGrid, RayFit, misfit_in_lenses, pattern_overlap
 from .refine import (FINE_GRID, FINE_TEMPERATURE, PROBE_FRACTION, PROBE_GRID, PROBE_HALF_RANGE, PROBE_RESIDUAL,
     SAME_DEPTH_SIGMAS, WIDE_FINE_GRID, WIDE_PROBE_GRID, RayFitter, accept, moved, outshines_misfit, replace_fits)
 from .sample_noise import SampleNoise
@@ -68,6 +68,17 @@ DISTINCT_PATTERN = 0.1
 #: times better, the false ones (light a bright neighbour's model leaves in its lens) 0.99-1.25
 #: (two of 14 at 1.8); the point-pattern test they got before dropped real ones in focus.
 IN_FOCUS_PAIR_GAIN = 1.3
+#: Such a partner that holds a probe's light (PROBE_FRACTION of the brighter one's) and misfits
+#: beyond PROBE_RESIDUAL only for the light others leave in its lenses (a bright partner's patch
+#: the model misplaces, a glint's disks) is a particle all the same where the pair explains its own
+#: lenses this many times better than the brighter one alone: over the brighter one's many lenses
+#: that light dilutes its gain (fresh shadowing 141: a 1241 DN partner in focus behind a 1995 DN one
+#: blurred over 2.3 pitches at a glint's edge, 1.08 over the brighter one's pixels, 2.7 over its own).
+#: Of such fits on the realistic shadowing and layer scenes of tuning seeds 27-30, 81-82 and 94 (21
+#: frames), the real ones did 2.7-4.1 (or under 1, failing both tests); fainter fits do up to 9.7
+#: over their own lenses, fragments of a bright particle's light, but none with a probe's light and
+#: a misfit within the limit (held out: 132-136 and 140-141, 29 frames, likewise).
+OWN_LENS_PAIR_GAIN = 2.0
 #: The refits without the neighbours' light may move their fine pass this many times
 #: (``fit_rays(recentre=...)``): it undoes the coarse pass's pull toward focus under a blur wider
 #: than the ideal optics'. First fits, with the neighbours' light still on, keep theirs: a wider
@@ -235,8 +246,9 @@ def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
     its lenses much as the brighter one does (:data:`SAME_PATTERN`), or where its light does not
     converge to a point (:func:`analysis.depth.quality.converges`; one blurred less than a pitch,
     whose light shows no pattern, unless the pair explains the pixels :data:`IN_FOCUS_PAIR_GAIN`
-    times better than one particle). Any fainter fit is weak where one particle explains its light
-    and the brighter one's better than the pair does (:func:`one_particle`)."""
+    times better than one particle, or, holding a probe's light, its own lenses
+    :data:`OWN_LENS_PAIR_GAIN` times better). Any fainter fit is weak where one particle explains its
+    light and the brighter one's better than the pair does (:func:`one_particle`)."""
     weak = np.zeros(len(fit), dtype=bool)
     if len(fit) < 2:
         return weak
@@ -278,13 +290,15 @@ def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
     unproven &= ~sharp
     weak[faint[unproven]] = True
     gain = np.where(sharp, IN_FOCUS_PAIR_GAIN, 1.0)[~unproven]
+    own_lenses = (sharp & (fit.intensity[faint] >= PROBE_FRACTION * fit.intensity[bright]))[~unproven]
     faint, bright = faint[~unproven], bright[~unproven]
-    weak[faint[one_particle(fitter, fit, faint, bright, explained, gain=gain)]] = True
+    weak[faint[one_particle(fitter, fit, faint, bright, explained, gain=gain, own_lenses=own_lenses)]] = True
     return weak
 
 
 def one_particle(fitter: RayFitter, fit: RayFit, faint: np.ndarray, bright: np.ndarray,
-                 explained: np.ndarray | None = None, *, gain: float | np.ndarray = 1.0) -> np.ndarray:
+                 explained: np.ndarray | None = None, *, gain: float | np.ndarray = 1.0,
+                 own_lenses: np.ndarray | None = None) -> np.ndarray:
     """Pairs of fits on one line of sight (rows ``faint[k]``, ``bright[k]``) that are one particle
     (a mask over the pairs): the brighter refitted with both fits' light on its pixels misfits them
     less (DN per sample) than it did with the fainter's light taken off. Two particles must explain
@@ -293,17 +307,31 @@ def one_particle(fitter: RayFitter, fit: RayFit, faint: np.ndarray, bright: np.n
     place (most of the false particles on the off-focus ball with a 0.8 px blur). Pairs of true
     particles misfit 1.3-5 times more as one on the realistic shadowing scenes, 0.7-2 in crowds.
     ``explained``: the light of all of ``fit`` (:meth:`RayFitter.render`), when already rendered.
-    ``gain`` (one value, or one per pair): how many times better the pair must explain the pixels."""
+    ``gain`` (one value, or one per pair): how many times better the pair must explain the pixels.
+    ``own_lenses`` (a mask over the pairs): pairs that are also two where the pair explains the
+    fainter one's own lenses (its blur disk and half a pitch) :data:`OWN_LENS_PAIR_GAIN` times better
+    than the brighter one refitted alone."""
     if faint.size == 0:
         return np.zeros(0, dtype=bool)
+    everything = fitter.render(fit) if explained is None else explained
     # All light but the pairs'; the brighter is refitted to what is left (its own share added back).
     # Where pairs overlap, each single fit also sees the other pairs' fainter light: it then
     # misfits more, so the rule errs toward keeping both.
-    explained = (fitter.render(fit) if explained is None else explained) - fitter.render(fit.take(np.unique(faint)))
+    explained = everything - fitter.render(fit.take(np.unique(faint)))
     single = fitter.fit(fit.sx_m[bright], fit.sy_m[bright], fit.alpha[bright], subtract=explained,
                         own=fit.take(bright), recentre=DEBLEND_RECENTRE)
     # RayFit.residual is the misfit per sample over the intensity: compare misfits in DN.
     one = single.residual * single.intensity < gain * fit.residual[bright] * fit.intensity[bright]
+    rows = np.flatnonzero(one & (False if own_lenses is None else own_lenses))
+    if rows.size:
+        alone = (explained - fitter.render(fit.take(np.setdiff1d(bright[rows], faint)))
+                 + fitter.render(single.take(rows)))
+        at = (fit.sx_m[faint[rows]], fit.sy_m[faint[rows]],
+              fitter.blur_radius_m(fit.alpha[faint[rows]]) + 0.5 * fitter.pitch_m)
+        pair_sq, alone_sq = (misfit_in_lenses(fitter.image, fitter.table, *at, background=fitter.background,
+                                              explained=model, saturation=fitter.saturation, cache=fitter.cache)
+                             for model in (everything, alone))
+        one[rows] = alone_sq < OWN_LENS_PAIR_GAIN ** 2 * pair_sq
     log.debug("line of sight: %d of %d pairs are one particle", one.sum(), one.size)
     return one
 

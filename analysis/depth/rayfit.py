@@ -172,6 +172,27 @@ def unexplained_light(image: np.ndarray, table: LightFieldTable, sx_m: np.ndarra
     """Light above ``floor`` (devignetted DN) left unexplained in the lenses within ``radius_m`` of
     each point, after taking off ``explained`` (from :func:`render_fits`); one sum per point.
     ``background``: one level, or one per sample of ``table``."""
+    def light(left: np.ndarray, raw: np.ndarray) -> np.ndarray:
+        return np.where(left > floor, left, 0.0)
+    return _sum_left(image, table, sx_m, sy_m, radius_m, background, explained, light, cache)
+
+
+def misfit_in_lenses(image: np.ndarray, table: LightFieldTable, sx_m: np.ndarray, sy_m: np.ndarray,
+                     radius_m: np.ndarray, *, background: float | np.ndarray, explained: np.ndarray,
+                     saturation: float = 4095.0, cache: Cache | None = None) -> np.ndarray:
+    """How far ``explained`` (from :func:`render_fits`) misses the light in the lenses within
+    ``radius_m`` of each point: the sum of squared differences (devignetted DN^2), one per point.
+    A saturated sample counts only where the model falls short of it, as in the fits."""
+    def squares(left: np.ndarray, raw: np.ndarray) -> np.ndarray:
+        return np.where((raw < saturation) | (left > 0.0), left * left, 0.0)
+    return _sum_left(image, table, sx_m, sy_m, radius_m, background, explained, squares, cache)
+
+
+def _sum_left(image: np.ndarray, table: LightFieldTable, sx_m: np.ndarray, sy_m: np.ndarray, radius_m: np.ndarray,
+              background: float | np.ndarray, explained: np.ndarray,
+              term: Callable[[np.ndarray, np.ndarray], np.ndarray], cache: Cache | None) -> np.ndarray:
+    """Per point, the sum of ``term(left, raw)`` over the samples of the lenses within ``radius_m``
+    of it: ``left`` the light above background that ``explained`` leaves, ``raw`` the pixel values."""
     idx = table_index(table, cache)
     flat = np.ascontiguousarray(image).reshape(-1)
     bg = background_per_sample(table, background)
@@ -179,9 +200,10 @@ def unexplained_light(image: np.ndarray, table: LightFieldTable, sx_m: np.ndarra
 
     def part(rows: slice) -> np.ndarray:
         g = idx.gather(sx[rows], sy[rows], radius[rows])
-        left = ((flat[table.pixel_index[g.ids]].astype(np.float64) - table.black_level) / idx.weight(g.ids)
-                - _at(bg, g.ids) - explained[g.ids])
-        return _sum_per_point(np.where(left > floor, left, 0.0), g, sx[rows].size)
+        raw = flat[table.pixel_index[g.ids]]
+        left = ((raw.astype(np.float64) - table.black_level) / idx.weight(g.ids) - _at(bg, g.ids)
+                - explained[g.ids])
+        return _sum_per_point(term(left, raw), g, sx[rows].size)
     return _in_chunks(sx.size, part)
 
 
