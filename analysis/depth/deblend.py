@@ -68,16 +68,17 @@ DISTINCT_PATTERN = 0.1
 #: times better, the false ones (light a bright neighbour's model leaves in its lens) 0.99-1.25
 #: (two of 14 at 1.8); the point-pattern test they got before dropped real ones in focus.
 IN_FOCUS_PAIR_GAIN = 1.3
-#: Such a partner that holds a probe's light (PROBE_FRACTION of the brighter one's) and misfits
-#: beyond PROBE_RESIDUAL only for the light others leave in its lenses (a bright partner's patch
-#: the model misplaces, a glint's disks) is a particle all the same where the pair explains its own
-#: lenses this many times better than the brighter one alone: over the brighter one's many lenses
-#: that light dilutes its gain (fresh shadowing 141: a 1241 DN partner in focus behind a 1995 DN one
-#: blurred over 2.3 pitches at a glint's edge, 1.08 over the brighter one's pixels, 2.7 over its own).
-#: Of such fits on the realistic shadowing and layer scenes of tuning seeds 27-30, 81-82 and 94 (21
-#: frames), the real ones did 2.7-4.1 (or under 1, failing both tests); fainter fits do up to 9.7
-#: over their own lenses, fragments of a bright particle's light, but none with a probe's light and
-#: a misfit within the limit (held out: 132-136 and 140-141, 29 frames, likewise).
+#: Such a partner that passes one of a probe's two tests (PROBE_FRACTION of the brighter one's
+#: light, or a misfit within PROBE_RESIDUAL) is a particle all the same where the pair explains its
+#: own lenses (its blur disk and half a pitch) this many times better than the brighter one alone.
+#: Over the brighter one's many lenses, light others leave in them (a bright partner's patch the
+#: model misplaces, a glint's disks) dilutes the pair's gain: fresh shadowing 141 lost a 1241 DN
+#: partner in focus behind a 1995 DN one blurred over 2.3 pitches at a glint's edge (light 0.65 of
+#: it, misfit 0.25; gain 1.08 over the brighter one's pixels, 2.7 over its own), fresh 143 a 705 DN
+#: one behind a 2310 DN one (light 0.31, misfit 0.16; 1.28 and 2.9). Fainter fits reach such gains
+#: too, fragments of a bright particle's light (up to 9.7 on the realistic shadowing and layer
+#: scenes of tuning seeds 27-30, 81-82 and 94 and held-out 132-136 and 140-141: 50 frames), but all
+#: of those failed both tests (under 0.35 of the light, misfits 0.25-0.52).
 OWN_LENS_PAIR_GAIN = 2.0
 #: The refits without the neighbours' light may move their fine pass this many times
 #: (``fit_rays(recentre=...)``): it undoes the coarse pass's pull toward focus under a blur wider
@@ -246,7 +247,7 @@ def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
     its lenses much as the brighter one does (:data:`SAME_PATTERN`), or where its light does not
     converge to a point (:func:`analysis.depth.quality.converges`; one blurred less than a pitch,
     whose light shows no pattern, unless the pair explains the pixels :data:`IN_FOCUS_PAIR_GAIN`
-    times better than one particle, or, holding a probe's light, its own lenses
+    times better than one particle, or, passing one of a probe's two tests, its own lenses
     :data:`OWN_LENS_PAIR_GAIN` times better). Any fainter fit is weak where one particle explains its
     light and the brighter one's better than the pair does (:func:`one_particle`)."""
     weak = np.zeros(len(fit), dtype=bool)
@@ -259,8 +260,9 @@ def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
     a, b = pairs[:, 0], pairs[:, 1]
     a_fainter = fit.intensity[a] < fit.intensity[b]
     faint, bright = np.where(a_fainter, a, b), np.where(a_fainter, b, a)
-    unproven = (((fit.intensity[faint] < PROBE_FRACTION * fit.intensity[bright])
-                 | (fit.residual[faint] > PROBE_RESIDUAL))
+    probe_light = fit.intensity[faint] >= PROBE_FRACTION * fit.intensity[bright]
+    probe_misfit = fit.residual[faint] <= PROBE_RESIDUAL
+    unproven = (~(probe_light & probe_misfit)
                 & ~outshines_misfit(fit.take(faint), fit.intensity[bright] * fit.residual[bright]))
     # Unproven, and lighting its lenses nearly as the brighter one does: the pixels cannot tell its
     # light from what a slightly wrong model leaves of the brighter one's (the tests below would
@@ -277,6 +279,7 @@ def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
     alike = overlap > SAME_PATTERN
     weak[faint[alike]] = True
     faint, bright, unproven, overlap = faint[~alike], bright[~alike], unproven[~alike], overlap[~alike]
+    half_proven = (probe_light | probe_misfit)[~alike]  # one of a probe's two tests passed
     explained = fitter.render(fit)  # the light of all fits, for both tests below
     # A fit blurred less than a pitch lights a lens or two evenly: no point pattern to follow.
     # Such an unproven one must instead explain the pixels, with its brighter partner, clearly
@@ -290,7 +293,7 @@ def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
     unproven &= ~sharp
     weak[faint[unproven]] = True
     gain = np.where(sharp, IN_FOCUS_PAIR_GAIN, 1.0)[~unproven]
-    own_lenses = (sharp & (fit.intensity[faint] >= PROBE_FRACTION * fit.intensity[bright]))[~unproven]
+    own_lenses = (sharp & half_proven)[~unproven]
     faint, bright = faint[~unproven], bright[~unproven]
     weak[faint[one_particle(fitter, fit, faint, bright, explained, gain=gain, own_lenses=own_lenses)]] = True
     return weak
