@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 from analysis.detection.curves import Peaks
 from analysis.lightfield.table import LightFieldTable
 
-from .quality import EXTENDED_POINT_OVER_SPREAD, converges
+from .quality import EXTENDED_POINT_OVER_SPREAD, FIT_RESIDUAL_SLACK, converges
 from .footprint import points_per_side
 from .rayfit import RENDER_POINTS, FitGrid, RayFit, misfit_in_lenses, pattern_overlap
 from .refine import (FINE_GRID, FINE_TEMPERATURE, PROBE_FRACTION, PROBE_GRID, PROBE_HALF_RANGE, PROBE_RESIDUAL,
@@ -278,8 +278,11 @@ def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
                                         cache=fitter.cache)
     alike = overlap > SAME_PATTERN
     weak[faint[alike]] = True
+    # One of a probe's two tests passed, within the final table's misfit limit (a partner that
+    # limit drops at the end takes its brighter one's fit along: tuning shadowing 94 lost both).
+    final_limit = fitter.max_residual / FIT_RESIDUAL_SLACK
+    half_proven = ((probe_light | probe_misfit) & (fit.residual[faint] <= final_limit))[~alike]
     faint, bright, unproven, overlap = faint[~alike], bright[~alike], unproven[~alike], overlap[~alike]
-    half_proven = (probe_light | probe_misfit)[~alike]  # one of a probe's two tests passed
     explained = fitter.render(fit)  # the light of all fits, for both tests below
     # A fit blurred less than a pitch lights a lens or two evenly: no point pattern to follow.
     # Such an unproven one must instead explain the pixels, with its brighter partner, clearly
