@@ -69,15 +69,16 @@ DISTINCT_PATTERN = 0.1
 #: (two of 14 at 1.8); the point-pattern test they got before dropped real ones in focus.
 IN_FOCUS_PAIR_GAIN = 1.3
 #: Such a partner that passes one of a probe's two tests (PROBE_FRACTION of the brighter one's
-#: light, or a misfit within PROBE_RESIDUAL) is a particle all the same where the pair explains its
-#: own lenses (its blur disk and half a pitch) this many times better than the brighter one alone.
+#: light, or a misfit within PROBE_RESIDUAL), misfitting within the final table's limit, is a
+#: particle all the same where the pair explains its own lenses (its blur disk and half a pitch)
+#: this many times better than the brighter one alone.
 #: Over the brighter one's many lenses, light others leave in them (a bright partner's patch the
 #: model misplaces, a glint's disks) dilutes the pair's gain: fresh shadowing 141 lost a 1241 DN
 #: partner in focus behind a 1995 DN one blurred over 2.3 pitches at a glint's edge (light 0.65 of
 #: it, misfit 0.25; gain 1.08 over the brighter one's pixels, 2.7 over its own), fresh 143 a 705 DN
 #: one behind a 2310 DN one (light 0.31, misfit 0.16; 1.28 and 2.9). Fainter fits reach such gains
 #: too, fragments of a bright particle's light (up to 9.7 on the realistic shadowing and layer
-#: scenes of tuning seeds 27-30, 81-82 and 94 and held-out 132-136 and 140-141: 50 frames), but all
+#: scenes of tuning seeds 27-30, 81-82 and 94 and held-out 132-136 and 140-141: 51 frames), but all
 #: of those failed both tests (under 0.35 of the light, misfits 0.25-0.52).
 OWN_LENS_PAIR_GAIN = 2.0
 #: The refits without the neighbours' light may move their fine pass this many times
@@ -247,8 +248,8 @@ def weak_partners(fitter: RayFitter, fit: RayFit) -> np.ndarray:
     its lenses much as the brighter one does (:data:`SAME_PATTERN`), or where its light does not
     converge to a point (:func:`analysis.depth.quality.converges`; one blurred less than a pitch,
     whose light shows no pattern, unless the pair explains the pixels :data:`IN_FOCUS_PAIR_GAIN`
-    times better than one particle, or, passing one of a probe's two tests, its own lenses
-    :data:`OWN_LENS_PAIR_GAIN` times better). Any fainter fit is weak where one particle explains its
+    times better than one particle, or, passing one of a probe's two tests within the final misfit
+    limit, its own lenses :data:`OWN_LENS_PAIR_GAIN` times better). Any fainter fit is weak where one particle explains its
     light and the brighter one's better than the pair does (:func:`one_particle`)."""
     weak = np.zeros(len(fit), dtype=bool)
     if len(fit) < 2:
