@@ -24,11 +24,33 @@ def test_a_fit_holding_two_particles_on_one_line_of_sight_is_split():
     assert np.all(split_fit.residual < fit.residual)
 
 
-def test_a_single_particle_is_not_split():
+@pytest.mark.parametrize("truth, brightness", [
+    ([0.99805, 1.00018], [2116.0, 1446.0]),  # held-out ideal ball 144's lost pair
+    ([0.99750, 1.00020], [2500.0, 1200.0]),
+])
+def test_a_partner_in_focus_that_one_fit_took_in_is_split_off_by_its_own_lens(truth, brightness):
+    """One fit of a particle blurred over about a pitch takes in the light of a partner in focus in
+    front of it, and fits well: split, the host fits no better (its misfit was low already) and the
+    two lie within the merge distance in depth, but the pair explains the partner's lens many times
+    better than the one fit did."""
     from analysis.depth.deblend import split_shared
 
-    model, table, s_hat, image = line_of_sight_scene([1.0028], [2600.0])
-    fitter, peaks, fit = one_fit(model, table, s_hat, image, 1.0028)
+    model, table, s_hat, image = line_of_sight_scene(np.array(truth), brightness)
+    fitter, peaks, fit = one_fit(model, table, s_hat, image, truth[0] + 0.0003)
+    assert len(fit) == 1 and fit.intensity[0] > brightness[0]  # it holds the partner's light too
+    split, split_fit = split_shared(fitter, peaks, fit, shadow_probe=0.0065, bright=0.5, misfit=0.5)
+    assert len(split) == 2
+    assert np.allclose(np.sort(split_fit.alpha), truth, atol=5e-4)
+    assert split_fit.intensity[np.argmax(split_fit.alpha)] > 0.7 * brightness[1]
+
+
+@pytest.mark.parametrize("alpha, brightness", [(1.0028, 2600.0), (0.9983, 2600.0), (0.9980, 3500.0),
+                                               (1.0001, 3000.0)])
+def test_a_single_particle_is_not_split(alpha, brightness):
+    from analysis.depth.deblend import split_shared
+
+    model, table, s_hat, image = line_of_sight_scene([alpha], [brightness])
+    fitter, peaks, fit = one_fit(model, table, s_hat, image, alpha)
     split, _ = split_shared(fitter, peaks, fit, shadow_probe=0.0065, bright=0.5, misfit=0.5)
     assert len(split) == 1
 

@@ -82,6 +82,11 @@ IN_FOCUS_PAIR_GAIN = 1.3
 #: pixels) did 0.9-1.4 over their own lenses when real (judged one particle either way), 1.07, 1.23 and
 #: 2.23 when false (the last a fragment of a 2621 DN particle, misfit 0.18): hence 2.5, not 2.
 #: Fainter fits that pass neither test reach up to 9.7 (fragments of a bright particle's light).
+#: :func:`split_shared` asks the same of a partner in focus split off a fit whose misfit the split
+#: leaves as it was: held-out ideal ball 144's lost 1446 DN particle in focus, taken in by a 2116 DN
+#: one blurred over 1.1 pitches 0.002 behind it in alpha, did 31 times better over its own lens; the
+#: false splits of that kind on the tuning frames (realistic balls at focus, shadowing and layers of
+#: seeds 27-30, 81-82, 94), each a fragment of its host, 0.02-1.64.
 OWN_LENS_PAIR_GAIN = 2.5
 #: The refits without the neighbours' light may move their fine pass this many times
 #: (``fit_rays(recentre=...)``): it undoes the coarse pass's pull toward focus under a blur wider
@@ -393,9 +398,13 @@ def split_shared(fitter: RayFitter, peaks: Peaks, fit: RayFit, *, shadow_probe: 
     A particle hidden behind another can give its light to the other's fit: one fit, brighter
     than most, explains both, and no light is left over for a probe
     (:func:`analysis.depth.refine.refine_peaks`) to find. For each fit brighter than ``bright``
-    times the median that also misfits more than ``misfit`` times the median, a partner is tried ``shadow_probe`` in front and behind, starting from half the
-    light each; partner and fit are refitted with each other's light taken off. The split is kept
-    where the fit gives up light to the partner and then fits its pixels much better.
+    times the median that also misfits more than ``misfit`` times the median, a partner is tried
+    ``shadow_probe`` in front and behind, starting from half the light each; partner and fit are
+    refitted with each other's light taken off. The split is kept where the partner passes as a
+    probe would, and the fit gives up light to it and then fits its pixels much better. A partner
+    in focus (blurred less than a pitch) can leave its host's misfit as low as before, and lie
+    within the merge distance of it in depth: it is kept where the pair explains its own lenses
+    :data:`OWN_LENS_PAIR_GAIN` times better than the one fit did.
     """
     # Two particles taken for one also misfit more than most.
     parents = (np.flatnonzero((fit.intensity > bright * np.median(fit.intensity))
@@ -417,6 +426,7 @@ def split_shared(fitter: RayFitter, peaks: Peaks, fit: RayFit, *, shadow_probe: 
         partner = fitter.fit(start.sx_m, start.sy_m, start.alpha, subtract=others + fitter.render(half),
                              alpha_half_range=PROBE_HALF_RANGE, fine=PROBE_GRID, wide_fine=WIDE_PROBE_GRID)
         good = np.zeros(len(par), dtype=bool)
+        own = np.zeros(len(par), dtype=bool)
         host = par
         look = np.flatnonzero(partner.intensity >= PROBE_FRACTION * half.intensity)
         if look.size:
@@ -424,18 +434,30 @@ def split_shared(fitter: RayFitter, peaks: Peaks, fit: RayFit, *, shadow_probe: 
             h = fitter.fit(h0.sx_m, h0.sy_m, h0.alpha, subtract=others + fitter.render(p0))
             q = fitter.fit(p0.sx_m, p0.sy_m, p0.alpha, subtract=others + fitter.render(h),
                            alpha_half_range=PROBE_HALF_RANGE)
-            good[look] = ((q.intensity >= PROBE_FRACTION * h.intensity) & (q.residual <= PROBE_RESIDUAL)
-                          & (h.intensity <= SPLIT_HOST_LIGHT * h0.intensity)
-                          & (h.residual <= SPLIT_HOST_MISFIT * h0.residual)
-                          & (np.abs(q.alpha - h.alpha) > fitter.merge_alpha))
+            probe = ((q.intensity >= PROBE_FRACTION * h.intensity) & (q.residual <= PROBE_RESIDUAL)
+                     & (h.intensity <= SPLIT_HOST_LIGHT * h0.intensity))
+            better = (h.residual <= SPLIT_HOST_MISFIT * h0.residual) & (np.abs(q.alpha - h.alpha) > fitter.merge_alpha)
+            sharp = probe & ~better & (fitter.blur_radius_m(q.alpha) < fitter.pitch_m)
+            if sharp.any():  # judged by the partner's own lenses instead
+                judge = np.flatnonzero(sharp)
+                at = (q.sx_m[judge], q.sy_m[judge], fitter.blur_radius_m(q.alpha[judge]) + 0.5 * fitter.pitch_m)
+                pair_sq, alone_sq = (misfit_in_lenses(fitter.image, fitter.table, *at, background=fitter.background,
+                                                      explained=model, saturation=fitter.saturation,
+                                                      cache=fitter.cache)
+                                     for model in (others + fitter.render(h.take(judge)) + fitter.render(q.take(judge)),
+                                                   others + fitter.render(h0.take(judge))))
+                sharp[judge] = alone_sq >= OWN_LENS_PAIR_GAIN ** 2 * pair_sq
+            good[look] = probe & (better | sharp)
+            own[look] = sharp
             host, partner = par.with_rows(look, h), partner.with_rows(look, q)
         if found is None:
-            found = (good, host, partner)
+            found = (good, host, partner, own)
         else:
             # Both sides split: keep the side whose partner took more light.
             use = good & (~found[0] | (partner.intensity > found[2].intensity))
-            found = (found[0] | good, host.where(use, found[1]), partner.where(use, found[2]))
-    good, host, partner = found
+            found = (found[0] | good, host.where(use, found[1]), partner.where(use, found[2]),
+                     np.where(use, own, found[3]))
+    good, host, partner, own = found
     rows = np.flatnonzero(good)
     log.debug("split: %d of %d bright fits hold two particles", rows.size, parents.size)
     if rows.size == 0:
@@ -443,7 +465,16 @@ def split_shared(fitter: RayFitter, peaks: Peaks, fit: RayFit, *, shadow_probe: 
     peaks, fit = replace_fits(fitter.grid, peaks, fit, parents[rows], host.take(rows))
     new = partner.take(rows)
     both, both_fit = Peaks.concat(peaks, moved(fitter.grid, peaks.take(parents[rows]), new)), RayFit.concat(fit, new)
-    return fitter.unique(both, both_fit, settled=len(peaks), record=False)  # the fits kept so far win
+    # The fits kept so far win. A partner proven by its own lenses may lie within the merge distance
+    # of its host (in focus, its depth is open over the range its one lens allows): it gives way
+    # to the others only.
+    kept = fitter.unique_rows(both, both_fit, settled=len(peaks))
+    hosts = parents[rows[own[rows]]]
+    if hosts.size:
+        rest = np.setdiff1d(np.arange(len(both)), hosts)
+        apart = rest[fitter.unique_rows(both.take(rest), both_fit.take(rest), settled=len(peaks) - hosts.size)]
+        kept = np.union1d(kept, np.intersect1d(apart, len(peaks) + np.flatnonzero(own[rows])))
+    return both.take(kept), both_fit.take(kept)
 
 
 def _overlapping(table: LightFieldTable, fit: RayFit, rows: np.ndarray, *, pad_pitches: float) -> np.ndarray:
