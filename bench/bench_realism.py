@@ -11,7 +11,8 @@ nearest-neighbour distance, the depth error over the ideal case's, the Cramér-R
 (what the pixels of an isolated particle allow, :mod:`analysis.simulation.bound`), false particles
 on a reflection, time per exposure and peak memory (resident, and its anonymous part); then the
 recall by the particles' blur diameter (each seed draws where its cluster lies, and so how many
-are strongly blurred). Today's pipeline is told none of the effects.
+are strongly blurred), and where a reflection's or glint's light falls on them and elsewhere.
+Today's pipeline is told none of the effects.
 
 Usage::
 
@@ -29,7 +30,7 @@ import argparse
 import json
 import math
 import sys
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,7 +46,7 @@ from analysis.simulation.bound import position_bound  # noqa: E402
 from analysis.simulation.chamber import ChamberLight  # noqa: E402
 from analysis.simulation.realism import EFFECTS, IDEAL_BLUR_PX  # noqa: E402
 from analysis.simulation.scoring import (RECALL_BLUR_BINS, blur_bin_label, false_on_reflection,  # noqa: E402
-                                         floor_split)
+                                         floor_split, recall_in_reflections)
 
 @dataclass(frozen=True)
 class Scene:
@@ -103,6 +104,7 @@ def run(work: Path, scene: Scene, case: str, seed: int, size: int, repeat: int, 
     truth = read_csv(folder / "IMG_0001.truth.csv")
     model = read_exposure(folder / "IMG_0001.lfp").model
     row["on_reflection"] = false_on_reflection(found, truth, chamber, model, nn_mm=row["score"].nn_mm)
+    row["in_light"] = asdict(recall_in_reflections(found, truth, chamber, model, nn_mm=row["score"].nn_mm))
     row["depth_bound_over_nn"] = depth_bound(truth, doc, seed) / row["score"].nn_mm
     row["floor_split"] = floor_split(found, truth, model.lattice, nn_mm=row["score"].nn_mm).to_dict()
     row.update(scene=scene.name, case=case)
@@ -234,10 +236,30 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
                   f"| {max(r['peak_rss_mb'] for r in rs):7.0f} | {max(r['peak_anon_mb'] for r in rs):7.0f} |")
         print()
         recall_by_blur(mine, cases)
+        recall_in_light(mine, cases)
     print("cases: ideal = the ideal camera; each effect alone at the typical F01's value (Realism.typical(), "
           "plenodust simulate --realism EFFECT); all = every effect (plenodust simulate --realism). 'scene' and "
           "'all' draw the clusters' geometry afresh (the same for both): 'scene' is the ideal-optics reference of 'all', "
           "'scene-bright' the same with all's brightness spread.")
+
+
+def recall_in_light(rows: list[dict], cases: list[str]) -> None:
+    """Per case, recall where a reflection's or glint's light falls on the particles (their
+    footprints on the sensor) and elsewhere, pooled over seeds."""
+    print("recall (%) where a reflection's or glint's light falls and elsewhere, pooled over seeds (true particles "
+          "in brackets)")
+    print(f"| {'case':12s} | {'in its light':>13s} | {'elsewhere':>13s} |")
+    print(f"|{'-' * 14}|{'-' * 15}|{'-' * 15}|")
+    for case in cases:
+        rs = [r["in_light"] for r in rows if r["case"] == case]
+        if not rs:
+            continue
+        cells = []
+        for side in ("in", "out"):
+            true, matched = sum(r[f"true_{side}"] for r in rs), sum(r[f"found_{side}"] for r in rs)
+            cells.append(f"{100 * matched / true:6.1f} ({true:4d})" if true else f"{'-':>13s}")
+        print(f"| {case:12s} | " + " | ".join(cells) + " |")
+    print()
 
 
 def recall_by_blur(rows: list[dict], cases: list[str]) -> None:

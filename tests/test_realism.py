@@ -432,3 +432,19 @@ def test_false_particles_on_a_reflection_are_counted():
     assert false_on_reflection(found, truth, ChamberLight(), model) == 0
     doc = json.loads(json.dumps(chamber.to_dict(model)))
     assert ChamberLight.from_dict(doc) == chamber
+
+
+def test_recall_is_split_by_whether_a_reflections_light_falls_on_the_particle():
+    from analysis.simulation.scoring import recall_in_reflections
+
+    model = CameraModel.from_metadata(simulated_camera_metadata())
+    chamber = ChamberLight.build(Realism(reflection_dn=2000.0), seed=3)
+    band = chamber.sources[0]
+    on_band_y = band.y_mm * 60.0 / band.z_mm
+    # Three true particles on the band's line of sight, two far off it; one of each kind found.
+    truth = {"X": np.array([0.0, 1.0, 2.0, 0.0, 1.0]), "Y": np.array([on_band_y] * 3 + [-4.0, -4.5]),
+             "Z": np.full(5, 60.0)}
+    found = {c: truth[c][[1, 4]] for c in "XYZ"}
+    split = recall_in_reflections(found, truth, chamber, model)
+    assert (split.true_in, split.found_in, split.true_out, split.found_out) == (3, 1, 2, 1)
+    assert recall_in_reflections(found, truth, ChamberLight(), model).true_in == 0

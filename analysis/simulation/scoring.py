@@ -353,3 +353,30 @@ def false_on_reflection(found: Mapping[str, np.ndarray], truth: Mapping[str, np.
         return 0
     where = particle_truth(model, Particles(fx[false], fy[false], fz[false], np.zeros(false.size)))
     return int(np.sum(chamber.on_reflection(model, where.x_px, where.y_px)))
+
+
+@dataclass(frozen=True)
+class RecallInLight:
+    """True particles where a reflection's or glint's light falls (``in``) and elsewhere
+    (``out``), and how many of each were found (matched)."""
+
+    true_in: int
+    found_in: int
+    true_out: int
+    found_out: int
+
+
+def recall_in_reflections(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], chamber: ChamberLight,
+                          model: CameraModel, *, nn_mm: float | None = None,
+                          max_distance: float = 0.5) -> RecallInLight:
+    """The true particles split by whether their chief ray meets the sensor where a reflection's
+    light falls (:meth:`ChamberLight.on_reflection`), and how many of each ``found`` matches: a
+    glint's wide disk over a cluster hides the particles in it from tests that read unexplained light."""
+    _, cols = match(found, truth, nn_mm=nn_mm, max_distance=max_distance)
+    tx, ty, tz = (np.asarray(truth[c], float) for c in ("X", "Y", "Z"))
+    where = particle_truth(model, Particles(tx, ty, tz, np.zeros(tx.size)))
+    lit = chamber.on_reflection(model, where.x_px, where.y_px)
+    hit = np.zeros(tx.size, dtype=bool)
+    hit[cols] = True
+    return RecallInLight(true_in=int(lit.sum()), found_in=int((lit & hit).sum()), true_out=int((~lit).sum()),
+                         found_out=int((~lit & hit).sum()))
