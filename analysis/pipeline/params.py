@@ -77,6 +77,12 @@ class PipelineParams:
         decides where they leave the depth open (the light falls in one micro-lens); in a 3D crowd
         no surface fits and it does nothing. Turn it off to measure out-of-surface motion from the
         pixels alone.
+    glints
+        Find compact sources far out of focus (glints: laser light scattered off electrodes or
+        windows) beyond the particles' range, fit each as a source spread over the lens plane, and
+        take their light off the raw image before the particles are looked for
+        (:mod:`analysis.lightfield.glints`); otherwise the tests of extended light drop particles
+        in a glint's disk.
     weigh_noise
         The last refit of the strongly blurred particles (``sharpen``) weighs each sample by its
         noise (:class:`analysis.depth.sample_noise.SampleNoise`), not all alike. Off by default: it
@@ -141,6 +147,7 @@ class PipelineParams:
     deblend: bool = True
     late_pass: bool = True
     depth_prior: bool = True
+    glints: bool = True
     weigh_noise: bool = False
     min_separation: float = 0.3
     pixel_size_mm: float | None = None

@@ -4,6 +4,8 @@ The composition of the stages (docs/design.md, "The analysis, stage by stage"), 
 parameter object stored with every result::
 
     table   = get_table(calibration, cache)               # analysis.pipeline.tables
+    image   = without_glints(image, table, find_glints(...))  # analysis.lightfield.glints (--no-glints
+              # skips it): compact sources far out of focus, beyond the particles' range, taken off
     stack   = refocus_stack(image, table, alphas)         # analysis.lightfield.refocus
     sub     = subaperture_image(image, table, ...)
     product = stack * sub
@@ -76,6 +78,7 @@ from analysis.lightfield.background import BackgroundMap, estimate_background
 from analysis.lightfield.refocus import default_alphas, products, refocus_stack, subaperture_image
 from analysis.lightfield.samples import background_and_noise, select_samples
 from analysis.lightfield.drifted_table import shifted_table
+from analysis.lightfield.glints import find_glints, without_glints
 from analysis.lightfield.table import LightFieldTable
 
 from .candidates import locate, product_threshold
@@ -222,8 +225,25 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         trim_heap()  # the survey's stack
     else:
         limits = (alphas[0], alphas[-1])
+    image = exposure.image
+    if params.glints and fitter is not None:
+        with clock.stage("glints"):
+            glints = find_glints(image, fit_table, background.per_lens(fit_table),
+                                 particle_c=(1.0 - 1.0 / limits[0], 1.0 - 1.0 / limits[1]), saturation=model.white_level)
+            if glints:
+                # Everything from the background on sees the exposure without their light.
+                warnings.append(f"{len(glints)} glint(s) far out of focus (alpha "
+                                f"{', '.join(f'{g.alpha:.4f}' for g in glints)}) taken off the image")
+                image = without_glints(image, fit_table, glints, saturation=model.white_level)
+                background = estimate_background(image, fit_table, noise_dn=noise_dn)
+                samples = select_samples(image, table, background=background, noise_sigmas=params.noise_sigmas)
+                noise = SampleNoise(*samples.noise, samples.background) if params.weigh_noise else None
+                sub = subaperture_image(image, table, fraction=params.aperture_fraction,
+                                        blur_sigma_px=params.blur_sigma_px, grid=grid, samples=samples, cache=cache)
+                fitter = dataclasses.replace(fitter, image=image, background=background.per_sample(fit_table))
+                lens_noise = samples.variance_ratio(background.per_lens(fit_table))
     with clock.stage("refocus"):
-        stack = refocus_stack(exposure.image, table, alphas, grid=grid, samples=samples, cache=cache)
+        stack = refocus_stack(image, table, alphas, grid=grid, samples=samples, cache=cache)
     with clock.stage("products"):
         product = products(stack, sub, out=None if keep_stack else stack)
 

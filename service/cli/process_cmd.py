@@ -107,6 +107,9 @@ def add_pipeline_arguments(p: argparse.ArgumentParser) -> None:
                    help="one more detection pass after deblending: finds more of the faint particles blurred over "
                         "many pitches among brighter ones (realistic crowds: 1.5-2 %% more), at about 1.3x the time; "
                         "--no-late-pass for speed")
+    g.add_argument("--glints", action=argparse.BooleanOptionalAction, default=d.glints,
+                   help="find compact sources far out of focus beyond the particles' range (glints off electrodes "
+                        "or windows) and take their light off the image first; --no-glints to keep it")
 
     g = p.add_argument_group("physical coordinates (default: the metadata's thin-lens model)")
     g.add_argument("--metric-calibration", type=Path, default=None, metavar="FILE",
@@ -127,7 +130,7 @@ def params_from_args(args: argparse.Namespace) -> Any:
         aperture_fraction=args.aperture_fraction, blur_sigma_px=args.blur_sigma,
         grid_oversample=args.grid_oversample, threshold=args.threshold, threshold_sigma=args.threshold_sigma,
         min_pixels=args.min_pixels, link_radius_px=args.link_radius, min_prominence=args.min_prominence,
-        depth_prior=not args.no_depth_prior, late_pass=args.late_pass,
+        depth_prior=not args.no_depth_prior, late_pass=args.late_pass, glints=args.glints,
         pixel_size_mm=args.pixel_size_mm, depth_per_alpha_mm=args.depth_per_alpha_mm,
         reference_alpha=args.reference_alpha, reference_z_mm=args.reference_z_mm)
 
