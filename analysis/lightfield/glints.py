@@ -214,28 +214,22 @@ def _fit(table: LightFieldTable, first: np.ndarray, above, start: np.ndarray, ra
                  intensity=float(np.exp(log_i)), explained=1.0 - 2.0 * float(best.cost) / total)
 
 
-def glint_light(table: LightFieldTable, glints: list[Glint]) -> np.ndarray:
-    """The glints' light on each sample of ``table`` (devignetted DN, float32)."""
-    out = np.zeros(table.n_samples, dtype=np.float32)
+def without_glints(image: np.ndarray, table: LightFieldTable, glints: list[Glint], *,
+                   saturation: float) -> np.ndarray:
+    """A copy of the raw ``image`` with the glints' light taken off its pixels (those at
+    ``saturation`` kept as read: their true value is unknown). Only the glints' disks are touched:
+    a whole table's worth of temporaries would add 150 MB to the frame's peak."""
+    out = np.ascontiguousarray(image).reshape(-1).copy()
     first = np.r_[0, np.cumsum(np.bincount(table.lens, minlength=table.n_lenses))]
     for g in glints:
         reach = abs(g.c) * table.aperture_radius_m + 5.0 * g.sigma_m
         lenses = np.flatnonzero(np.hypot(table.lens_xy_m[:, 0] - g.sx_m, table.lens_xy_m[:, 1] - g.sy_m) < reach)
         ids = _lens_samples(first, lenses)
         cx, cy = table.lens_xy_m[table.lens[ids]].T
-        p = np.array([g.sx_m, g.sy_m, g.c, np.log(g.sigma_m), np.log(g.intensity)])
-        out[ids] += _model(p, cx, cy, table.u_m[ids].astype(np.float64), table.v_m[ids].astype(np.float64))
-    return out
-
-
-def without_glints(image: np.ndarray, table: LightFieldTable, glints: list[Glint], *,
-                   saturation: float) -> np.ndarray:
-    """A copy of the raw ``image`` with the glints' light taken off its pixels (those at
-    ``saturation`` kept as read: their true value is unknown)."""
-    light = glint_light(table, glints)
-    flat = np.ascontiguousarray(image).reshape(-1)
-    out = flat.copy()
-    raw = flat[table.pixel_index].astype(np.float64)
-    clean = np.rint(raw - table.weight.astype(np.float64) * light)
-    out[table.pixel_index] = np.where(raw >= saturation, raw, np.clip(clean, 0.0, saturation)).astype(image.dtype)
+        light = _model(np.array([g.sx_m, g.sy_m, g.c, np.log(g.sigma_m), np.log(g.intensity)]), cx, cy,
+                       table.u_m[ids].astype(np.float64), table.v_m[ids].astype(np.float64))
+        pixels = table.pixel_index[ids]
+        raw = out[pixels].astype(np.float64)
+        clean = np.clip(np.rint(raw - table.weight[ids].astype(np.float64) * light), 0.0, saturation)
+        out[pixels] = np.where(raw >= saturation, raw, clean).astype(image.dtype)
     return out.reshape(image.shape)

@@ -235,6 +235,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                 warnings.append(f"{len(glints)} glint(s) far out of focus (alpha "
                                 f"{', '.join(f'{g.alpha:.4f}' for g in glints)}) taken off the image")
                 image = without_glints(image, fit_table, glints, saturation=model.white_level)
+                samples = sub = None  # let go before they are made again (a frame's peak)
                 background = estimate_background(image, fit_table, noise_dn=noise_dn)
                 samples = select_samples(image, table, background=background, noise_sigmas=params.noise_sigmas)
                 noise = SampleNoise(*samples.noise, samples.background) if params.weigh_noise else None
