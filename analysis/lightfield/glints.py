@@ -8,8 +8,8 @@ spread over the lens plane as a Gaussian of ``sigma`` lies in lens ``k`` (centre
 aperture point ``(x_k - s) / c``. In each sub-aperture image such a source is as compact as a
 particle blurred over several pitches, so the background's medians over neighbouring lenses keep
 most of it; left in, its light stands unexplained around every particle in its disk, which the
-tests of extended light then drop (realism bench, 25 realistic frames: recall 91 % inside glints'
-disks, 99 % elsewhere).
+tests of extended light then drop (25 realistic frames, docs/realism-history.md stop 55: recall
+91 % inside glints' disks, 99 % elsewhere).
 
 Per sample the model is ``intensity * exp(-|x_k - c u - s|^2 / (2 sigma^2))`` (devignetted DN above
 the lens's glow level): fitted by least squares to the samples of the disk, it explains a glint's
@@ -84,6 +84,11 @@ def _jacobian(p: np.ndarray, cx: np.ndarray, cy: np.ndarray, u: np.ndarray, v: n
                             m * (ex * ex + ey * ey) * inv, m])
 
 
+def _lens_starts(table: LightFieldTable) -> np.ndarray:
+    """Where each lens's samples start in ``table`` (and, last, its sample count)."""
+    return np.r_[0, np.cumsum(np.bincount(table.lens, minlength=table.n_lenses))]
+
+
 def _lens_samples(first: np.ndarray, lenses: np.ndarray) -> np.ndarray:
     """The sample ids of ``lenses``, whose samples start at ``first[lens]`` (a table lists each
     lens's samples together)."""
@@ -111,7 +116,7 @@ def find_glints(image: np.ndarray, table: LightFieldTable, level: np.ndarray, *,
     flat = np.ascontiguousarray(image).reshape(-1)
     pitch = float(np.hypot(*table.basis_m[:, 0]))
     level = np.ascontiguousarray(level, dtype=np.float64)
-    first = np.r_[0, np.cumsum(np.bincount(table.lens, minlength=table.n_lenses))]
+    first = _lens_starts(table)
     per_lens = np.zeros(table.n_lenses)
     _light_above(flat, table.pixel_index, table.weight, first, level, float(table.black_level), per_lens)
 
@@ -220,7 +225,7 @@ def without_glints(image: np.ndarray, table: LightFieldTable, glints: list[Glint
     ``saturation`` kept as read: their true value is unknown). Only the glints' disks are touched:
     a whole table's worth of temporaries would add 150 MB to the frame's peak."""
     out = np.ascontiguousarray(image).reshape(-1).copy()
-    first = np.r_[0, np.cumsum(np.bincount(table.lens, minlength=table.n_lenses))]
+    first = _lens_starts(table)
     for g in glints:
         reach = abs(g.c) * table.aperture_radius_m + 5.0 * g.sigma_m
         lenses = np.flatnonzero(np.hypot(table.lens_xy_m[:, 0] - g.sx_m, table.lens_xy_m[:, 1] - g.sy_m) < reach)
