@@ -139,6 +139,8 @@ def find_glints(image: np.ndarray, table: LightFieldTable, level: np.ndarray, *,
     found: list[Glint] = []
 
     def passes(g: Glint, slack: float) -> bool:
+        if not np.all(np.isfinite([g.c, g.sigma_m, g.intensity, g.explained])):
+            return False
         beyond = g.c < lo - RANGE_MARGIN_C * slack or g.c > hi + RANGE_MARGIN_C * slack
         return beyond and g.sigma_m >= slack * MIN_SIGMA_PITCHES * pitch and g.explained >= slack * MIN_EXPLAINED
 
@@ -151,6 +153,8 @@ def find_glints(image: np.ndarray, table: LightFieldTable, level: np.ndarray, *,
         if glint is None or not passes(glint, 0.5):
             continue
         glint = _fit(table, first, above, np.array([glint.sx_m, glint.sy_m]), radius, pitch, LAST_FIT_SAMPLES, glint)
+        if glint is None:  # its disk, about the first fit's place, held too little light
+            continue
         log.debug("glint candidate at alpha %.4f: sigma %.1f pitches, %.0f DN, explains %.2f", glint.alpha,
                   glint.sigma_m / pitch, glint.intensity, glint.explained)
         if passes(glint, 1.0) and not any(np.hypot(g.sx_m - glint.sx_m, g.sy_m - glint.sy_m) < g.sigma_m + glint.sigma_m
