@@ -68,6 +68,11 @@ class Glint:
     def alpha(self) -> float:
         return 1.0 / (1.0 - self.c)
 
+    @property
+    def params(self) -> np.ndarray:
+        """The model's parameters (:func:`_model`)."""
+        return np.array([self.sx_m, self.sy_m, self.c, np.log(self.sigma_m), np.log(self.intensity)])
+
 
 def _model(p: np.ndarray, cx: np.ndarray, cy: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     sx, sy, c, log_sigma, log_i = p
@@ -82,11 +87,6 @@ def _jacobian(p: np.ndarray, cx: np.ndarray, cy: np.ndarray, u: np.ndarray, v: n
     m = _model(p, cx, cy, u, v)
     return np.column_stack([m * ex * inv, m * ey * inv, m * (ex * u + ey * v) * inv,
                             m * (ex * ex + ey * ey) * inv, m])
-
-
-def _lens_starts(table: LightFieldTable) -> np.ndarray:
-    """Where each lens's samples start in ``table`` (and, last, its sample count)."""
-    return np.r_[0, np.cumsum(np.bincount(table.lens, minlength=table.n_lenses))]
 
 
 def _lens_samples(first: np.ndarray, lenses: np.ndarray) -> np.ndarray:
@@ -116,9 +116,8 @@ def find_glints(image: np.ndarray, table: LightFieldTable, level: np.ndarray, *,
     flat = np.ascontiguousarray(image).reshape(-1)
     pitch = float(np.hypot(*table.basis_m[:, 0]))
     level = np.ascontiguousarray(level, dtype=np.float64)
-    first = _lens_starts(table)
     per_lens = np.zeros(table.n_lenses)
-    _light_above(flat, table.pixel_index, table.weight, first, level, float(table.black_level), per_lens)
+    _light_above(flat, table.pixel_index, table.weight, table.lens_start, level, float(table.black_level), per_lens)
 
     def above(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The samples' light above their lens's glow level, and which are not saturated."""
@@ -149,10 +148,10 @@ def find_glints(image: np.ndarray, table: LightFieldTable, level: np.ndarray, *,
         radius = _half_radius(smooth, r, q) * pitch
         # A quick fit on a sample of the disk's lenses, both sides of focus; the full one where it
         # looks like a glint (particles' crowds, fitted so, do not).
-        glint = _fit(table, first, above, start, radius, pitch, FIRST_FIT_SAMPLES, None)
+        glint = _fit(table, above, start, radius, pitch, FIRST_FIT_SAMPLES, None)
         if glint is None or not passes(glint, 0.5):
             continue
-        glint = _fit(table, first, above, np.array([glint.sx_m, glint.sy_m]), radius, pitch, LAST_FIT_SAMPLES, glint)
+        glint = _fit(table, above, np.array([glint.sx_m, glint.sy_m]), radius, pitch, LAST_FIT_SAMPLES, glint)
         if glint is None:  # its disk, about the first fit's place, held too little light
             continue
         log.debug("glint candidate at alpha %.4f: sigma %.1f pitches, %.0f DN, explains %.2f", glint.alpha,
@@ -188,27 +187,31 @@ def _half_radius(smooth: np.ndarray, r: int, q: int) -> float:
     return float(np.mean(reach))
 
 
-def _fit(table: LightFieldTable, first: np.ndarray, above, start: np.ndarray, radius: float, pitch: float,
+def _fit(table: LightFieldTable, above, start: np.ndarray, radius: float, pitch: float,
          max_samples: int, prior: Glint | None) -> Glint | None:
     """The Gaussian source that best explains the light above the glow about ``start`` (a disk of
     about ``radius``), from ``prior`` or with its depth tried on both sides of focus; None when
-    there is too little light. ``first``: where each lens's samples start in the table."""
+    there is too little light. ``above(ids)``: the samples' light above the glow, and which are
+    not saturated."""
     near = np.flatnonzero(np.hypot(*(table.lens_xy_m - start).T) < radius + 4.0 * MIN_SIGMA_PITCHES * pitch)
     if near.size < 20:
         return None
     near = near[:: max(1, int(np.ceil(near.size * 80 / max_samples)))]  # about 80 samples a lens
-    ids = _lens_samples(first, near)
+    ids = _lens_samples(table.lens_start, near)
     y, unsaturated = above(ids)
     ids, y = ids[unsaturated], y[unsaturated]
     cx, cy = table.lens_xy_m[table.lens[ids]].T
     u, v = table.u_m[ids].astype(np.float64), table.v_m[ids].astype(np.float64)
+    total = float(np.sum(np.maximum(y, 0.0) ** 2))
+    if total <= 0:
+        return None
     peak = max(float(np.percentile(y, 99.5)), 1.0)
     c_size = radius / table.aperture_radius_m
     if prior is None:
         starts = [np.array([start[0], start[1], sign * c_size, np.log(MIN_SIGMA_PITCHES * pitch), np.log(peak)])
                   for sign in (-1.0, 1.0)]
     else:
-        starts = [np.array([prior.sx_m, prior.sy_m, prior.c, np.log(prior.sigma_m), np.log(prior.intensity)])]
+        starts = [prior.params]
     best = None
     for p0 in starts:
         fit = least_squares(lambda p: _model(p, cx, cy, u, v) - y, p0, jac=lambda p: _jacobian(p, cx, cy, u, v),
@@ -216,9 +219,6 @@ def _fit(table: LightFieldTable, first: np.ndarray, above, start: np.ndarray, ra
         if best is None or fit.cost < best.cost:
             best = fit
     sx, sy, c, log_sigma, log_i = best.x
-    total = float(np.sum(np.maximum(y, 0.0) ** 2))
-    if total <= 0:
-        return None
     return Glint(sx_m=float(sx), sy_m=float(sy), c=float(c), sigma_m=float(np.exp(log_sigma)),
                  intensity=float(np.exp(log_i)), explained=1.0 - 2.0 * float(best.cost) / total)
 
@@ -229,14 +229,12 @@ def without_glints(image: np.ndarray, table: LightFieldTable, glints: list[Glint
     ``saturation`` kept as read: their true value is unknown). Only the glints' disks are touched:
     a whole table's worth of temporaries would add 150 MB to the frame's peak."""
     out = np.ascontiguousarray(image).reshape(-1).copy()
-    first = _lens_starts(table)
     for g in glints:
         reach = abs(g.c) * table.aperture_radius_m + 5.0 * g.sigma_m
         lenses = np.flatnonzero(np.hypot(table.lens_xy_m[:, 0] - g.sx_m, table.lens_xy_m[:, 1] - g.sy_m) < reach)
-        ids = _lens_samples(first, lenses)
+        ids = _lens_samples(table.lens_start, lenses)
         cx, cy = table.lens_xy_m[table.lens[ids]].T
-        light = _model(np.array([g.sx_m, g.sy_m, g.c, np.log(g.sigma_m), np.log(g.intensity)]), cx, cy,
-                       table.u_m[ids].astype(np.float64), table.v_m[ids].astype(np.float64))
+        light = _model(g.params, cx, cy, table.u_m[ids].astype(np.float64), table.v_m[ids].astype(np.float64))
         pixels = table.pixel_index[ids]
         raw = out[pixels].astype(np.float64)
         clean = np.clip(np.rint(raw - table.weight[ids].astype(np.float64) * light), 0.0, saturation)

@@ -76,7 +76,7 @@ from analysis.formats.frame_metadata import shot_time_s
 from analysis.formats.mapped_npz import release_pages
 from analysis.lightfield.background import BackgroundMap, estimate_background
 from analysis.lightfield.refocus import default_alphas, products, refocus_stack, subaperture_image
-from analysis.lightfield.samples import background_and_noise, select_samples
+from analysis.lightfield.samples import Samples, background_and_noise, select_samples
 from analysis.lightfield.drifted_table import shifted_table
 from analysis.lightfield.glints import find_glints, without_glints
 from analysis.lightfield.table import LightFieldTable
@@ -186,10 +186,8 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         drift = _lattice_drift(exposure, calibration, cache, noise_dn)
         fit_table = drifted_fit_table(calibration, cache, drift)
     with clock.stage("samples"):
-        background = estimate_background(exposure.image, fit_table, noise_dn=noise_dn)
-        samples = select_samples(exposure.image, table, background=background, noise_sigmas=params.noise_sigmas)
+        background, samples, noise = _samples(exposure.image, table, fit_table, noise_dn, params)
         threshold = product_threshold(samples.sigma, params)
-        noise = SampleNoise(*samples.noise, samples.background) if params.weigh_noise else None
     with clock.stage("subaperture"):
         sub = subaperture_image(exposure.image, table, fraction=params.aperture_fraction,
                                 blur_sigma_px=params.blur_sigma_px, grid=grid, samples=samples, cache=cache)
@@ -236,9 +234,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                                 f"{', '.join(f'{g.alpha:.4f}' for g in glints)}) taken off the image")
                 image = without_glints(image, fit_table, glints, saturation=model.white_level)
                 samples = sub = None  # let go before they are made again (a frame's peak)
-                background = estimate_background(image, fit_table, noise_dn=noise_dn)
-                samples = select_samples(image, table, background=background, noise_sigmas=params.noise_sigmas)
-                noise = SampleNoise(*samples.noise, samples.background) if params.weigh_noise else None
+                background, samples, noise = _samples(image, table, fit_table, noise_dn, params)
                 sub = subaperture_image(image, table, fraction=params.aperture_fraction,
                                         blur_sigma_px=params.blur_sigma_px, grid=grid, samples=samples, cache=cache)
                 fitter = dataclasses.replace(fitter, image=image, background=background.per_sample(fit_table))
@@ -318,6 +314,15 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         else:
             warnings.append("no particles found above the noise; check the exposure and the threshold")
     return finish(peaks, tracks, stack, sub, threshold, fit, quality)
+
+
+def _samples(image: np.ndarray, table: LightFieldTable, fit_table: LightFieldTable, noise_dn: float,
+             params: PipelineParams) -> tuple[BackgroundMap, Samples, SampleNoise | None]:
+    """The extended light behind the image (on the depth fit's table), the refocus table's samples
+    above it, and their noise for the fits when ``params.weigh_noise``."""
+    background = estimate_background(image, fit_table, noise_dn=noise_dn)
+    samples = select_samples(image, table, background=background, noise_sigmas=params.noise_sigmas)
+    return background, samples, SampleNoise(*samples.noise, samples.background) if params.weigh_noise else None
 
 
 def _lattice_drift(exposure: Exposure, calibration: Calibration, cache: Cache, noise_dn: float) -> LatticeDrift | None:
