@@ -20,7 +20,7 @@ from analysis.formats.whites import WhiteImage
 from analysis.lightfield.background import CENTRAL_FRACTION, BackgroundMap, estimate_background, local_noise
 from analysis.lightfield.samples import background_and_noise, select_samples
 from analysis.order_statistics import median_of_5
-from analysis.pipeline.tables import FIT_TABLE_RIM_PX, drifted_fit_table, get_table
+from analysis.pipeline.tables import DRIFTED_TABLES_KEPT, FIT_TABLE_RIM_PX, drifted_fit_table, get_table
 from analysis.simulation.camera import (ELECTRONS_PER_DN, READ_NOISE_DN, simulated_camera_metadata,
                                         simulated_private_metadata)
 from analysis.simulation.camera_effects import CameraEffects
@@ -180,6 +180,31 @@ def test_the_cache_keeps_one_drifted_table_per_calibration(case):
     base = get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
     assert [value[1] for _, value in cache.entries("drifted_table", base.uid)] == [second]
     assert drifted_fit_table(calibration, cache, None) is base
+
+
+def test_a_cache_directory_keeps_the_latest_drifted_tables_mapped_and_rebuilds_a_broken_one(case, tmp_path):
+    _, calibration, _, _ = case
+    drift = LatticeDrift((0.2, -0.1), 0.0, 0.01, 100)
+    made = drifted_fit_table(calibration, Cache(directory=tmp_path), drift)
+    files = sorted(tmp_path.rglob("*.drift.*.npz"))
+    assert len(files) == 1
+    # A new process reads it back, mapped from the file (its pages can be given back), not derived again.
+    read = drifted_fit_table(calibration, Cache(directory=tmp_path), drift)
+    assert read.uid == made.uid and not read.weight.flags.owndata
+    for name in ("pixel_index", "lens", "u_m", "v_m", "weight"):
+        np.testing.assert_array_equal(getattr(read, name), getattr(made, name))
+    # Broken on disk (replaced, as every cache file is written: the tables above keep their map):
+    # derived again, the same table, the file written anew.
+    broken = tmp_path / "broken"
+    broken.write_bytes(files[0].read_bytes()[:1000])
+    broken.replace(files[0])
+    again = drifted_fit_table(calibration, Cache(directory=tmp_path), drift)
+    np.testing.assert_array_equal(again.weight, made.weight)
+    assert again.uid != made.uid
+    # Only the most recently used ones stay.
+    for k in range(DRIFTED_TABLES_KEPT + 2):
+        drifted_fit_table(calibration, Cache(directory=tmp_path), LatticeDrift((0.3 + 0.05 * k, -0.1), 0.0, 0.01, 100))
+    assert len(list(tmp_path.rglob("*.drift.*.npz"))) == DRIFTED_TABLES_KEPT
 
 
 def test_released_pages_of_a_mapped_map_read_back_the_same(tmp_path):

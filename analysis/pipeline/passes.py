@@ -71,14 +71,15 @@ def look_again(fitter: RayFitter, table: LightFieldTable, background: Background
         return None
     explained = fitter.render(fit, points=RESIDUAL_POINTS)
     residual = residual_image(fitter.image, fitter.table, explained)
+    # The fits so far touched much of the fit table (60-100 MB on a frame with many candidates):
+    # its pages go back while the residual's samples and stack are made, and are read in again
+    # from the file cache.
+    release_table_pages(fitter.table, fitter.cache)
     cut = residual_cut(table, fitter.image, residual, params.noise_sigmas) if low_cut else None
     rs = select_samples(residual, table, background=background, noise_sigmas=params.noise_sigmas, lens_sigmas=cut)
     # The residual image (21 MB on an F01) and the fits' light (18 MB) go before the stack: the
     # light is rendered again for the fits below (realistic off-focus ball 86: peak 605 -> 587 MB).
     del residual, explained
-    # The fits so far touched much of the fit table (60-100 MB on a frame with many candidates):
-    # its pages go back while the stack is made, and are read in again from the file cache.
-    release_table_pages(fitter.table, fitter.cache)
     trim_heap()
     rstack = refocus_stack(None, table, alphas, grid=fitter.grid, samples=rs, cache=fitter.cache)
     rsub = subaperture_image(None, table, fraction=params.aperture_fraction, blur_sigma_px=params.blur_sigma_px,

@@ -186,7 +186,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         drift = _lattice_drift(exposure, calibration, cache, noise_dn)
         fit_table = drifted_fit_table(calibration, cache, drift)
     with clock.stage("samples"):
-        background, samples, noise = _samples(exposure.image, table, fit_table, noise_dn, params)
+        background, samples, noise = _samples(exposure.image, table, fit_table, noise_dn, params, cache)
         threshold = product_threshold(samples.sigma, params)
     with clock.stage("subaperture"):
         sub = subaperture_image(exposure.image, table, fraction=params.aperture_fraction,
@@ -206,6 +206,9 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
         second_stop=calibration.second_stop) if params.refine else None
     # How much noisier than the typical ones each fit-table lens's samples are (extended light).
     lens_noise = samples.variance_ratio(background.per_lens(fit_table))
+    # The background read the fit's table; the stacks below do not: where it is mapped from the disk
+    # cache, its pages go back until the fits read them again (a drifted F01 table: 90 MB).
+    release_table_pages(fit_table, cache)
     if not params.user_range:
         with clock.stage("survey"):
             found, lone = _survey(exposure.image, table, background, alphas, params, threshold, cache, fitter,
@@ -234,11 +237,12 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                                 f"{', '.join(f'{g.alpha:.4f}' for g in glints)}) taken off the image")
                 image = without_glints(image, fit_table, glints, saturation=model.white_level)
                 samples = sub = None  # let go before they are made again (a frame's peak)
-                background, samples, noise = _samples(image, table, fit_table, noise_dn, params)
+                background, samples, noise = _samples(image, table, fit_table, noise_dn, params, cache)
                 sub = subaperture_image(image, table, fraction=params.aperture_fraction,
                                         blur_sigma_px=params.blur_sigma_px, grid=grid, samples=samples, cache=cache)
                 fitter = dataclasses.replace(fitter, image=image, background=background.per_sample(fit_table))
                 lens_noise = samples.variance_ratio(background.per_lens(fit_table))
+    release_table_pages(fit_table, cache)  # read by the glints' stage
     with clock.stage("refocus"):
         stack = refocus_stack(image, table, alphas, grid=grid, samples=samples, cache=cache)
     with clock.stage("products"):
@@ -317,10 +321,11 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
 
 
 def _samples(image: np.ndarray, table: LightFieldTable, fit_table: LightFieldTable, noise_dn: float,
-             params: PipelineParams) -> tuple[BackgroundMap, Samples, SampleNoise | None]:
+             params: PipelineParams, cache: Cache) -> tuple[BackgroundMap, Samples, SampleNoise | None]:
     """The extended light behind the image (on the depth fit's table), the refocus table's samples
     above it, and their noise for the fits when ``params.weigh_noise``."""
     background = estimate_background(image, fit_table, noise_dn=noise_dn)
+    release_table_pages(fit_table, cache)  # not held while the samples read the refocus table
     samples = select_samples(image, table, background=background, noise_sigmas=params.noise_sigmas)
     return background, samples, SampleNoise(*samples.noise, samples.background) if params.weigh_noise else None
 

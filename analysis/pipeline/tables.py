@@ -9,7 +9,10 @@ normalisations computed so far.
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import logging
+import math
 from pathlib import Path
 
 import numpy as np
@@ -165,8 +168,12 @@ def drifted_fit_table(calibration: Calibration, cache: Cache, drift: LatticeDrif
 
     ``cache`` keeps one drifted table per calibration, the last one asked for: a run's lattice
     drifts slowly, and each drifted table holds 90 MB (an F01's) that older drifts would keep
-    until the cache's budget pushed them out. The undrifted table's columns, which the drifted one
-    replaces, give their pages back when they are mapped from the disk cache."""
+    until the cache's budget pushed them out. With a directory, the cache also keeps the last
+    :data:`DRIFTED_TABLES_KEPT` drifted tables of each white image on disk, and the table is mapped
+    from its file, as the others are: its pages can then be given back while the stacks are made
+    (:func:`release_table_pages`), and a new process reads it instead of deriving it again. The
+    undrifted table's columns, which the drifted one replaces, give their pages back when they are
+    mapped from the disk cache."""
     base = get_table(calibration, cache, rim_px=FIT_TABLE_RIM_PX)
     if drift is None:
         return base
@@ -174,23 +181,73 @@ def drifted_fit_table(calibration: Calibration, cache: Cache, drift: LatticeDrif
          round(drift.rotation_rad / DRIFT_STEP_RAD))
     if q == (0, 0, 0):
         return base
-    lattice = calibration.model.lattice
-    steps = LatticeDrift((q[0] * DRIFT_STEP_PX, q[1] * DRIFT_STEP_PX), q[2] * DRIFT_STEP_RAD, drift.sigma_px,
-                         drift.n_blocks)
-
     key = ("drifted_table", base.uid)
     held = cache.take(key)  # taken, so that the previous drift's is not held while another is built
     if held is not None and held[0] == q:
         return cache.put(key, held)[1]
     del held
+    template = drift_template(calibration)
+    path = None
+    if cache.directory is not None:
+        path = _drifted_table_path(cache.directory, calibration, base, q, template)
+        table = _read_drifted(path)
+        if table is not None:
+            return cache.put(key, (q, table))[1]
+    lattice = calibration.model.lattice
+    steps = LatticeDrift((q[0] * DRIFT_STEP_PX, q[1] * DRIFT_STEP_PX), q[2] * DRIFT_STEP_RAD, drift.sigma_px,
+                         drift.n_blocks)
     cx, cy = lattice.centre(base.lens_ij[:, 0], base.lens_ij[:, 1])
     shift = np.column_stack(steps.displacement(cx, cy, lattice))
     optics = calibration.model.optics
     table = shifted_table(base, calibration.devignetting, shift, m_per_px=optics.pixel_pitch_m / optics.projection_factor,
-                          template=drift_template(calibration), defects=calibration.defect_mask,
-                          min_weight=MIN_WEIGHT)
+                          template=template, defects=calibration.defect_mask, min_weight=MIN_WEIGHT)
     release_pages(calibration.devignetting)
+    if path is not None and _save_quietly(table, path, cache):
+        table = _mapped_again(table, path, cache)
+        _remove_older_drifts(path)
     return cache.put(key, (q, table))[1]
+
+
+#: Drifted tables kept on disk per white image (an F01's: 90 MB each), the most recently written.
+DRIFTED_TABLES_KEPT = 4
+#: Part of a drifted table file's name: change it when :func:`shifted_table` changes what it makes.
+DRIFTED_TABLE_VERSION = 1
+
+
+def _drifted_table_path(cache_dir: Path, calibration: Calibration, base: LightFieldTable, q: tuple[int, int, int],
+                        template: MicroImageTemplate) -> Path:
+    """Beside the undrifted table, named by everything the drifted one is made from: the undrifted
+    table (its uid changes when it is built again), the drift's steps, the micro-image model."""
+    digest = hashlib.sha1(repr((DRIFTED_TABLE_VERSION, base.uid, q, MIN_WEIGHT, template.step_px)).encode())
+    digest.update(np.ascontiguousarray(template.values).tobytes())
+    serial = calibration.serial or "unknown-serial"
+    return Path(cache_dir) / serial / f"{calibration.white_sha1}.drift.{digest.hexdigest()[:20]}.npz"
+
+
+def _read_drifted(path: Path) -> LightFieldTable | None:
+    if not path.is_file():
+        return None
+    try:
+        table = load_table(path)
+    except CalibrationError as exc:  # rebuilt, never trusted
+        log.warning("drifted look-up table cache %s unusable (%s); deriving it again", path, exc)
+        return None
+    with contextlib.suppress(OSError):
+        path.touch()  # recently used: kept by _remove_older_drifts
+    return table
+
+
+def _remove_older_drifts(path: Path) -> None:
+    """Delete all but the :data:`DRIFTED_TABLES_KEPT` most recently used drifted tables of the white image."""
+    def used(p: Path) -> float:
+        try:
+            return p.stat().st_mtime
+        except OSError:
+            return math.inf  # gone already
+    others = sorted(path.parent.glob(path.name.split(".drift.")[0] + ".drift.*.npz"), key=used, reverse=True)
+    for old in others[DRIFTED_TABLES_KEPT:]:
+        with contextlib.suppress(OSError):
+            old.unlink()
 
 
 def drift_template(calibration: Calibration) -> MicroImageTemplate:
