@@ -97,7 +97,7 @@ def check_free_disk(path: Path, needed_gb: float, what: str) -> None:
         where = where.parent
     free = shutil.disk_usage(where).free / 2 ** 30
     if free < needed_gb:
-        raise SystemExit(f"{what} needs about {needed_gb:.1f} GiB free under {where}, but {free:.1f} GiB are: "
+        raise SystemExit(f"{what} needs about {needed_gb:.2f} GiB free under {where}, but only {free:.2f} GiB are: "
                          "free some space, or give --work a folder on a larger disk")
 
 
