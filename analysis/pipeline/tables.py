@@ -243,7 +243,7 @@ def _remove_older_drifts(path: Path) -> None:
         try:
             return p.stat().st_mtime
         except OSError:
-            return math.inf  # gone already
+            return -math.inf  # gone already: not one of those kept
     others = sorted(path.parent.glob(path.name.split(".drift.")[0] + ".drift.*.npz"), key=used, reverse=True)
     for old in others[DRIFTED_TABLES_KEPT:]:
         with contextlib.suppress(OSError):
