@@ -46,7 +46,6 @@ class TableIndex:
 
     def __init__(self, table: LightFieldTable) -> None:
         self.table = table
-        self.start = np.searchsorted(table.lens, np.arange(table.n_lenses + 1)).astype(np.int64)
         self.tree = cKDTree(table.lens_xy_m)
         b1 = table.basis_m[:, 0]
         b2 = table.basis_m[:, 1]
@@ -67,7 +66,7 @@ class TableIndex:
     @property
     def nbytes(self) -> int:
         """Memory held (the lens ranges and the tree's copy of the lens centres, roughly)."""
-        return int(self.start.nbytes + 3 * self.table.lens_xy_m.nbytes)
+        return int(self.table.lens_start.nbytes + 3 * self.table.lens_xy_m.nbytes)
 
     def cells(self, aperture_per_lens_plane: float, response_slope: float = 0.0,
               second_stop: SecondStop | None = None) -> Cells:
@@ -87,8 +86,9 @@ class TableIndex:
         lens_count = np.array([len(lst) for lst in lens_lists], dtype=np.int64)
         lenses = (np.concatenate([np.asarray(lst, dtype=np.int64) for lst in lens_lists]) if lens_count.sum()
                   else np.empty(0, np.int64))
-        counts = self.start[lenses + 1] - self.start[lenses]
-        ids = np.repeat(self.start[lenses] - np.cumsum(np.r_[0, counts[:-1]]), counts) + np.arange(counts.sum())
+        start = self.table.lens_start
+        counts = start[lenses + 1] - start[lenses]
+        ids = self.table.samples_of(lenses)
         lens_ptr = np.r_[0, np.cumsum(lens_count)].astype(np.int64)
         assert lens_ptr.size == n + 1
         return Gathered(lens_ptr=lens_ptr, sample_ptr=np.r_[0, np.cumsum(counts)].astype(np.int64),

@@ -89,14 +89,6 @@ def _jacobian(p: np.ndarray, cx: np.ndarray, cy: np.ndarray, u: np.ndarray, v: n
                             m * (ex * ex + ey * ey) * inv, m])
 
 
-def _lens_samples(first: np.ndarray, lenses: np.ndarray) -> np.ndarray:
-    """The sample ids of ``lenses``, whose samples start at ``first[lens]`` (a table lists each
-    lens's samples together)."""
-    start = first[lenses]
-    counts = first[lenses + 1] - start
-    return np.repeat(start - np.cumsum(np.r_[0, counts[:-1]]), counts) + np.arange(int(counts.sum()))
-
-
 def find_glints(image: np.ndarray, table: LightFieldTable, level: np.ndarray, *,
                 particle_c: tuple[float, float], saturation: float) -> list[Glint]:
     """The glints of a raw exposure (see the module docstring).
@@ -197,7 +189,7 @@ def _fit(table: LightFieldTable, above, start: np.ndarray, radius: float, pitch:
     if near.size < 20:
         return None
     near = near[:: max(1, int(np.ceil(near.size * 80 / max_samples)))]  # about 80 samples a lens
-    ids = _lens_samples(table.lens_start, near)
+    ids = table.samples_of(near)
     y, unsaturated = above(ids)
     ids, y = ids[unsaturated], y[unsaturated]
     cx, cy = table.lens_xy_m[table.lens[ids]].T
@@ -232,7 +224,7 @@ def without_glints(image: np.ndarray, table: LightFieldTable, glints: list[Glint
     for g in glints:
         reach = abs(g.c) * table.aperture_radius_m + 5.0 * g.sigma_m
         lenses = np.flatnonzero(np.hypot(table.lens_xy_m[:, 0] - g.sx_m, table.lens_xy_m[:, 1] - g.sy_m) < reach)
-        ids = _lens_samples(table.lens_start, lenses)
+        ids = table.samples_of(lenses)
         cx, cy = table.lens_xy_m[table.lens[ids]].T
         light = _model(g.params, cx, cy, table.u_m[ids].astype(np.float64), table.v_m[ids].astype(np.float64))
         pixels = table.pixel_index[ids]

@@ -159,6 +159,13 @@ class LightFieldTable:
         """ndarray (L + 1,) int64: the samples of lens ``k`` are ``lens_start[k] ... lens_start[k + 1]``."""
         return np.concatenate([[0], np.cumsum(np.bincount(self.lens, minlength=self.n_lenses))]).astype(np.int64)
 
+    def samples_of(self, lenses: np.ndarray) -> np.ndarray:
+        """ndarray int64: the sample ids of ``lenses``, lens after lens (each lens's samples are
+        consecutive, :attr:`lens_start`)."""
+        start = self.lens_start[lenses]
+        counts = self.lens_start[lenses + 1] - start
+        return np.repeat(start - np.cumsum(np.r_[0, counts[:-1]]), counts) + np.arange(int(counts.sum()))
+
     @cached_property
     def max_row_shift(self) -> float:
         """Largest ``|row shift|`` of any sample on the site grid per unit of ``1/alpha - 1``."""
