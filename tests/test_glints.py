@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -69,3 +71,65 @@ def test_no_glint_is_found_where_there_is_none_or_within_the_particles_range(sce
     assert _glints(table, alone) == []
     c = 1 - 1 / GLINT_ALPHA
     assert _glints(table, image, particle_c=(PARTICLE_C[0], c + 0.01)) == []
+
+
+def test_a_glint_seen_through_the_fits_is_found_there_and_its_false_fit_dropped():
+    """A compact glint (held-out seed 148's: 0.16 mm, 1425 DN, at alpha 1.043) far behind the
+    particles' range, where the glint map would see a crowd's light: a fit started on the glint's
+    light at the particles' depth is blurred thin and shows no point's pattern; the glint search
+    started there finds the glint, and refitted with the glint's light taken off, the false fit
+    goes (as ``glint``) and the particle beside it is found where it is."""
+    from analysis.depth.quality import patterned
+    from analysis.detection.rejections import Rejections
+    from analysis.pipeline.hidden_glints import glints_behind, refit_in_glints
+    from line_of_sight_scenes import one_fit, peaks_at
+
+    model = CameraModel.from_metadata(simulated_camera_metadata(size=512))
+    optics = model.optics
+    table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
+    pitch = float(np.hypot(*table.basis_m[:, 0]))
+    glint_s = np.array([-2.0, 1.0]) * pitch
+    z_glint = float(optics.z_of_alpha(1.043))
+    glint = ExtendedSource(kind="glint", z_mm=z_glint, x_mm=glint_s[0] * z_glint / optics.exit_pupil_m,
+                           y_mm=glint_s[1] * z_glint / optics.exit_pupil_m, sigma_mm=0.16, level_dn=1425.0)
+    particle_s = glint_s + np.array([6.0, -3.0]) * pitch
+    z = float(optics.z_of_alpha(1.02))
+    particle = Particles(np.array([particle_s[0] * z / optics.exit_pupil_m]),
+                         np.array([particle_s[1] * z / optics.exit_pupil_m]), np.array([z]), np.array([1500.0]))
+    image = render_exposure(model, particle, seed=7, chamber=ChamberLight(sources=(glint,)))
+    # The particle's fit and one on the glint's light at the particles' depth, each with the
+    # other's light taken off, over the glow as the pipeline estimates it.
+    noise = background_and_noise(image, table)[1]
+    glow = estimate_background(image, table, noise_dn=noise)
+    level = glow.per_lens(table)
+    fitter = dataclasses.replace(one_fit(model, table, particle_s, image, 1.02)[0], background=glow.per_sample(table))
+    both = fitter.fit(np.array([particle_s[0], glint_s[0]]), np.array([particle_s[1], glint_s[1]]), np.full(2, 1.02))
+    both = fitter.fit(both.sx_m, both.sy_m, both.alpha, subtract=fitter.render(both), own=both)
+    assert fitter.acceptable(both).all()
+    assert not patterned(fitter, both, fitter.render(both))[1]
+
+    limits = (0.995, 1.025)
+    found = glints_behind(fitter, both, level, limits, [])
+    assert len(found) == 1 and abs(found[0].alpha - 1.043) < 0.003
+    assert glints_behind(fitter, both, level, limits, found) == []  # a glint already known is not found again
+
+    rejected = Rejections()
+    clean = without_glints(image, table, found, saturation=4095.0)
+    # As the pipeline does: the glow behind the fits estimated again without the glint's light.
+    background = estimate_background(clean, table, noise_dn=noise).per_sample(table)
+    fitter = dataclasses.replace(fitter, image=clean, background=background, rejected=rejected)
+    peaks, kept = refit_in_glints(fitter, peaks_at(table.grid, both), both, found, max_residual=0.25)
+    assert len(kept) == 1 and abs(kept.alpha[0] - 1.02) < 0.001
+    assert np.hypot(kept.sx_m[0] - particle_s[0], kept.sy_m[0] - particle_s[1]) < 0.2 * pitch
+    assert rejected.table()["reason"].tolist() == ["glint"]
+
+
+def test_no_glint_is_found_behind_a_blurred_particle_alone():
+    from analysis.pipeline.hidden_glints import glints_behind
+    from line_of_sight_scenes import line_of_sight_scene, one_fit
+
+    model, table, s_hat, image = line_of_sight_scene([1.02], [1500.0])
+    fitter, _, fit = one_fit(model, table, s_hat, image, 1.02)
+    noise = background_and_noise(image, table)[1]
+    level = estimate_background(image, table, noise_dn=noise).per_lens(table)
+    assert glints_behind(fitter, fit, level, (0.995, 1.025), []) == []

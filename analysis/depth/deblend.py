@@ -186,6 +186,23 @@ def refit_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit) -> tuple[Peaks, 
     return _refit_where_acceptable(fitter, peaks.take(keep), fit.take(keep), np.flatnonzero(near[keep]))
 
 
+def refit_or_drop(fitter: RayFitter, peaks: Peaks, fit: RayFit, rows: np.ndarray, reason: str, *,
+                  max_residual: float | None = None) -> tuple[Peaks, RayFit]:
+    """``rows`` refitted with every other fit's light taken off (after light that is no particle's
+    was taken off the fitter's image under them): replaced where the refit is acceptable (misfit
+    within ``max_residual``, default the fitter's), dropped as ``reason`` where it is not."""
+    if rows.size == 0:
+        return peaks, fit
+    sub = fit.take(rows)
+    new = fitter.fit(sub.sx_m, sub.sy_m, sub.alpha, subtract=fitter.render(fit), own=sub, recentre=DEBLEND_RECENTRE)
+    ok = fitter.acceptable(new, max_residual)
+    peaks, fit = replace_fits(fitter.grid, peaks, fit, rows[ok], new.take(ok))
+    gone = np.zeros(len(fit), dtype=bool)
+    gone[rows[~ok]] = True
+    fitter.reject(peaks.take(gone), new.take(~ok), reason)
+    return peaks.take(~gone), fit.take(~gone)
+
+
 def sharpen_blurred(fitter: RayFitter, peaks: Peaks, fit: RayFit,
                     noise: SampleNoise | None = None) -> tuple[Peaks, RayFit]:
     """The strongly blurred particles' last estimate: refitted once more, with every other

@@ -30,6 +30,8 @@ REASONS: dict[str, str] = {
     "too_close": ("it lies closer to a brighter particle than particles in a plasma come (PipelineParams."
                   "min_separation): that particle's light fitted twice"),
     "extended": "its light does not converge to a point: an extended source (reflection, glow, glare)",
+    "glint": ("its light was a glint's far out of focus seen through the cluster (found behind the particles' fits "
+              "and taken off the image): without it the fit no longer holds a particle"),
     "apart": ("a point source far in depth from all the others, left out of the range: a compact glint far out "
               "of focus looks so, and so would a lone particle (give the alpha range to include it)"),
 }

@@ -49,6 +49,8 @@ RANGE_MARGIN_C = 0.002
 #: fit of those that pass: at most about this many (every n-th lens beyond).
 FIRST_FIT_SAMPLES = 3_000
 LAST_FIT_SAMPLES = 40_000
+#: Fits started at given places (:func:`glints_at`) cover a disk of this radius (lens pitches).
+SEED_RADIUS_PITCHES = 10.0
 
 
 @dataclass(frozen=True)
@@ -105,17 +107,7 @@ def find_glints(image: np.ndarray, table: LightFieldTable, level: np.ndarray, *,
     saturation : float
         Raw value at which the ADC saturates (such samples are left out of the fits).
     """
-    flat = np.ascontiguousarray(image).reshape(-1)
-    pitch = float(np.hypot(*table.basis_m[:, 0]))
-    level = np.ascontiguousarray(level, dtype=np.float64)
-    per_lens = np.zeros(table.n_lenses)
-    _light_above(flat, table.pixel_index, table.weight, table.lens_start, level, float(table.black_level), per_lens)
-
-    def above(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The samples' light above their lens's glow level, and which are not saturated."""
-        raw = flat[table.pixel_index[ids]].astype(np.float64)
-        return ((raw - table.black_level) / np.maximum(table.weight[ids].astype(np.float64), 1e-6)
-                - level[table.lens[ids]], raw < saturation)
+    above, per_lens, pitch = _light(image, table, level, saturation)
     # The map on a grid of one pitch over the lens plane.
     xy = table.lens_xy_m
     ij = np.floor((xy - xy.min(axis=0)) / pitch).astype(np.int64)
@@ -126,6 +118,43 @@ def find_glints(image: np.ndarray, table: LightFieldTable, level: np.ndarray, *,
         smooth > CANDIDATE_OVER_MEDIAN * max(float(np.median(smooth)), 1e-9))
     rows, cols = np.nonzero(peaks)
     order = np.argsort(-smooth[rows, cols])[:MAX_CANDIDATES]
+    starts = [xy.min(axis=0) + (np.array([q, r]) + 0.5) * pitch for r, q in zip(rows[order], cols[order])]
+    radii = [_half_radius(smooth, r, q) * pitch for r, q in zip(rows[order], cols[order])]
+    return _glints_from(table, above, starts, radii, pitch, particle_c)
+
+
+def glints_at(image: np.ndarray, table: LightFieldTable, level: np.ndarray, starts: np.ndarray, *,
+              particle_c: tuple[float, float], saturation: float) -> list[Glint]:
+    """The glints of a raw exposure found by fits started at ``starts`` (n, 2; lens-plane metres),
+    each over a disk of :data:`SEED_RADIUS_PITCHES`; other arguments as for :func:`find_glints`.
+
+    For a glint the map of :func:`find_glints` cannot show: one seen through a crowded cluster,
+    whose light there is the particles' (the pipeline starts these fits at the particles' fits that
+    show no point's pattern, in an image with the other fits' light taken off)."""
+    above, _, pitch = _light(image, table, level, saturation)
+    starts = np.asarray(starts, dtype=np.float64).reshape(-1, 2)
+    return _glints_from(table, above, list(starts), [SEED_RADIUS_PITCHES * pitch] * len(starts), pitch, particle_c)
+
+
+def _light(image: np.ndarray, table: LightFieldTable, level: np.ndarray, saturation: float):
+    """``above(ids)`` (the samples' devignetted light above their lens's glow ``level``, and which
+    are below ``saturation``), each lens's summed light above it, and the lens pitch."""
+    flat = np.ascontiguousarray(image).reshape(-1)
+    pitch = float(np.hypot(*table.basis_m[:, 0]))
+    level = np.ascontiguousarray(level, dtype=np.float64)
+    per_lens = np.zeros(table.n_lenses)
+    _light_above(flat, table.pixel_index, table.weight, table.lens_start, level, float(table.black_level), per_lens)
+
+    def above(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        raw = flat[table.pixel_index[ids]].astype(np.float64)
+        return ((raw - table.black_level) / np.maximum(table.weight[ids].astype(np.float64), 1e-6)
+                - level[table.lens[ids]], raw < saturation)
+    return above, per_lens, pitch
+
+
+def _glints_from(table: LightFieldTable, above, starts: list[np.ndarray], radii: list[float], pitch: float,
+                 particle_c: tuple[float, float]) -> list[Glint]:
+    """The glints among fits started at ``starts`` over disks of ``radii`` (lens-plane metres)."""
     lo, hi = particle_c
     found: list[Glint] = []
 
@@ -135,9 +164,7 @@ def find_glints(image: np.ndarray, table: LightFieldTable, level: np.ndarray, *,
         beyond = g.c < lo - RANGE_MARGIN_C * slack or g.c > hi + RANGE_MARGIN_C * slack
         return beyond and g.sigma_m >= slack * MIN_SIGMA_PITCHES * pitch and g.explained >= slack * MIN_EXPLAINED
 
-    for r, q in zip(rows[order], cols[order]):
-        start = xy.min(axis=0) + (np.array([q, r]) + 0.5) * pitch
-        radius = _half_radius(smooth, r, q) * pitch
+    for start, radius in zip(starts, radii):
         # A quick fit on a sample of the disk's lenses, both sides of focus; the full one where it
         # looks like a glint (particles' crowds, fitted so, do not).
         glint = _fit(table, above, start, radius, pitch, FIRST_FIT_SAMPLES, None)
@@ -148,10 +175,14 @@ def find_glints(image: np.ndarray, table: LightFieldTable, level: np.ndarray, *,
             continue
         log.debug("glint candidate at alpha %.4f: sigma %.1f pitches, %.0f DN, explains %.2f", glint.alpha,
                   glint.sigma_m / pitch, glint.intensity, glint.explained)
-        if passes(glint, 1.0) and not any(np.hypot(g.sx_m - glint.sx_m, g.sy_m - glint.sy_m) < g.sigma_m + glint.sigma_m
-                                          for g in found):
+        if passes(glint, 1.0) and not any(overlap(g, glint) for g in found):
             found.append(glint)
     return found
+
+
+def overlap(a: Glint, b: Glint) -> bool:
+    """Whether two fitted glints are one source (their centres within their spreads)."""
+    return bool(np.hypot(a.sx_m - b.sx_m, a.sy_m - b.sy_m) < a.sigma_m + b.sigma_m)
 
 
 @numba.njit(cache=True, parallel=True)

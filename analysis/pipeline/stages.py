@@ -14,7 +14,7 @@ STAGE_COST: dict[str, float] = {
     "table": 2.0, "samples": 10.0, "refocus": 10.0, "subaperture": 3.0, "products": 3.0, "detect": 36.0,
     "link": 8.0, "peaks": 4.0, "maxima": 23.0, "refine": 162.0, "more_passes": 133.0, "deblend": 147.0,
     "split": 37.0, "late_pass": 200.0, "depth_prior": 86.0, "refit": 40.0, "quality": 10.0, "sharpen": 40.0,
-    "coordinates": 1.0, "survey": 60.0, "drift": 25.0, "glints": 10.0,
+    "coordinates": 1.0, "survey": 60.0, "drift": 25.0, "glints": 10.0, "glints_behind": 30.0,
 }
 
 #: ``progress(fraction, stage)``: fraction of the work done (0 ... 1), the stage now running.
