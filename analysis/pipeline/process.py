@@ -305,6 +305,7 @@ def process(exposure: Exposure, calibration: Calibration, params: PipelineParams
                     warnings.append(f"{len(behind)} glint(s) far out of focus seen through the cluster (alpha "
                                     f"{', '.join(f'{g.alpha:.4f}' for g in behind)}) taken off the image")
                     image = without_glints(fitter.image, fit_table, behind, saturation=model.white_level)
+                    release_table_pages(fit_table, cache)  # the background reads it all again
                     # The glow estimated again: where it held some of the glint's light, the fits
                     # would miss that light (kept, 7 of 20 frames with such a glint lost 1-5 particles).
                     if params.weigh_noise:  # the fits' noise comes from the samples
