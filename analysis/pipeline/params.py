@@ -82,7 +82,9 @@ class PipelineParams:
         windows) beyond the particles' range, fit each as a source spread over the lens plane, and
         take their light off the raw image before the particles are looked for
         (:mod:`analysis.lightfield.glints`); otherwise the tests of extended light drop particles
-        in a glint's disk.
+        in a glint's disk. Once the particles are fitted, glints seen through the cluster are
+        looked for too, where fits show no point's pattern, and taken off
+        (:mod:`analysis.pipeline.hidden_glints`).
     weigh_noise
         The last refit of the strongly blurred particles (``sharpen``) weighs each sample by its
         noise (:class:`analysis.depth.sample_noise.SampleNoise`), not all alike. Off by default: it

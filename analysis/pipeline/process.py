@@ -87,8 +87,8 @@ from analysis.lightfield.table import LightFieldTable
 from .candidates import locate, product_threshold
 from .depth_range import (LONE_GAP_STEPS, SURVEY_GRID, apart, edge_maxima, fit_limits, lattice_step,
                           range_of_peaks, survey_alphas)
-from .params import PipelineParams
 from .hidden_glints import glints_behind, refit_in_glints
+from .params import PipelineParams
 from .passes import above_noise, late_pass, look_again
 from .result import Result
 from .stages import Progress, StageClock, trim_heap

@@ -109,7 +109,8 @@ def add_pipeline_arguments(p: argparse.ArgumentParser) -> None:
                         "--no-late-pass for speed")
     g.add_argument("--glints", action=argparse.BooleanOptionalAction, default=d.glints,
                    help="find compact sources far out of focus beyond the particles' range (glints off electrodes "
-                        "or windows) and take their light off the image first; --no-glints to keep it")
+                        "or windows) and take their light off the image first, and those seen through the cluster once "
+                        "the particles are fitted; --no-glints to keep it")
 
     g = p.add_argument_group("physical coordinates (default: the metadata's thin-lens model)")
     g.add_argument("--metric-calibration", type=Path, default=None, metavar="FILE",
