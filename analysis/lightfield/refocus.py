@@ -46,8 +46,6 @@ the same one to every call; without one, each call works it out afresh), and
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numba
 import numpy as np
 
