@@ -8,15 +8,20 @@ import numpy as np
 import pytest
 
 from analysis.camera.model import CameraModel
+from analysis.depth.quality import patterned
+from analysis.detection.rejections import Rejections
 from analysis.lightfield.background import estimate_background
 from analysis.lightfield.glints import MIN_SIGMA_PITCHES, find_glints, without_glints
 from analysis.lightfield.samples import background_and_noise
 from analysis.lightfield.table import build_table_from_model
+from analysis.pipeline.hidden_glints import glints_behind, refit_in_glints
 from analysis.pipeline.tables import FIT_TABLE_RIM_PX
 from analysis.simulation.camera import simulated_camera_metadata
 from analysis.simulation.chamber import ChamberLight, ExtendedSource
 from analysis.simulation.render import render_exposure, white_coverage
 from analysis.simulation.scenarios import Particles
+
+from line_of_sight_scenes import line_of_sight_scene, one_fit, peaks_at
 
 GLINT_ALPHA = 1.04
 #: The particles' range in c = 1 - 1/alpha: about focus, the glint well beyond it.
@@ -74,16 +79,11 @@ def test_no_glint_is_found_where_there_is_none_or_within_the_particles_range(sce
 
 
 def test_a_glint_seen_through_the_fits_is_found_there_and_its_false_fit_dropped():
-    """A compact glint (held-out seed 148's: 0.16 mm, 1425 DN, at alpha 1.043) far behind the
-    particles' range, where the glint map would see a crowd's light: a fit started on the glint's
+    """A compact glint (held-out seed 148's: 0.16 mm, 1425 DN, at alpha 1.043) beyond the
+    particles' range, seen where the glint map would show a crowd's light: a fit started on the glint's
     light at the particles' depth is blurred thin and shows no point's pattern; the glint search
     started there finds the glint, and refitted with the glint's light taken off, the false fit
     goes (as ``glint``) and the particle beside it is found where it is."""
-    from analysis.depth.quality import patterned
-    from analysis.detection.rejections import Rejections
-    from analysis.pipeline.hidden_glints import glints_behind, refit_in_glints
-    from line_of_sight_scenes import one_fit, peaks_at
-
     model = CameraModel.from_metadata(simulated_camera_metadata(size=512))
     optics = model.optics
     table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
@@ -125,9 +125,6 @@ def test_a_glint_seen_through_the_fits_is_found_there_and_its_false_fit_dropped(
 
 
 def test_no_glint_is_found_behind_a_blurred_particle_alone():
-    from analysis.pipeline.hidden_glints import glints_behind
-    from line_of_sight_scenes import line_of_sight_scene, one_fit
-
     model, table, s_hat, image = line_of_sight_scene([1.02], [1500.0])
     fitter, _, fit = one_fit(model, table, s_hat, image, 1.02)
     noise = background_and_noise(image, table)[1]
