@@ -16,6 +16,10 @@ the lens's glow level): fitted by least squares to the samples of the disk, it e
 spots to near the noise. A source is taken for a glint only where it is extended (a particle is a
 point: its fitted ``sigma`` is that of the sensor's blur, a fraction of a pitch) and lies in depth
 beyond the particles' range.
+
+:func:`find_glints` starts the fits at the maxima of a map of each lens's light; :func:`glints_at`
+at given places, for a glint the map cannot show behind a crowded cluster
+(:mod:`analysis.pipeline.hidden_glints` starts them at fits that show no point's pattern).
 """
 
 from __future__ import annotations
