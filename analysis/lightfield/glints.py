@@ -111,7 +111,10 @@ def find_glints(image: np.ndarray, table: LightFieldTable, level: np.ndarray, *,
     saturation : float
         Raw value at which the ADC saturates (such samples are left out of the fits).
     """
-    above, per_lens, pitch = _light(image, table, level, saturation)
+    above, pitch = _samples_above(image, table, level, saturation)
+    per_lens = np.zeros(table.n_lenses)
+    _light_above(np.ascontiguousarray(image).reshape(-1), table.pixel_index, table.weight, table.lens_start,
+                 np.ascontiguousarray(level, dtype=np.float64), float(table.black_level), per_lens)
     # The map on a grid of one pitch over the lens plane.
     xy = table.lens_xy_m
     ij = np.floor((xy - xy.min(axis=0)) / pitch).astype(np.int64)
@@ -135,25 +138,23 @@ def glints_at(image: np.ndarray, table: LightFieldTable, level: np.ndarray, star
     For a glint the map of :func:`find_glints` cannot show: one seen through a crowded cluster,
     whose light there is the particles' (the pipeline starts these fits at the particles' fits that
     show no point's pattern, in an image with the other fits' light taken off)."""
-    above, _, pitch = _light(image, table, level, saturation)
+    above, pitch = _samples_above(image, table, level, saturation)
     starts = np.asarray(starts, dtype=np.float64).reshape(-1, 2)
     return _glints_from(table, above, list(starts), [SEED_RADIUS_PITCHES * pitch] * len(starts), pitch, particle_c)
 
 
-def _light(image: np.ndarray, table: LightFieldTable, level: np.ndarray, saturation: float):
+def _samples_above(image: np.ndarray, table: LightFieldTable, level: np.ndarray, saturation: float):
     """``above(ids)`` (the samples' devignetted light above their lens's glow ``level``, and which
-    are below ``saturation``), each lens's summed light above it, and the lens pitch."""
+    are below ``saturation``), and the lens pitch."""
     flat = np.ascontiguousarray(image).reshape(-1)
     pitch = float(np.hypot(*table.basis_m[:, 0]))
     level = np.ascontiguousarray(level, dtype=np.float64)
-    per_lens = np.zeros(table.n_lenses)
-    _light_above(flat, table.pixel_index, table.weight, table.lens_start, level, float(table.black_level), per_lens)
 
     def above(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raw = flat[table.pixel_index[ids]].astype(np.float64)
         return ((raw - table.black_level) / np.maximum(table.weight[ids].astype(np.float64), 1e-6)
                 - level[table.lens[ids]], raw < saturation)
-    return above, per_lens, pitch
+    return above, pitch
 
 
 def _glints_from(table: LightFieldTable, above, starts: list[np.ndarray], radii: list[float], pitch: float,
