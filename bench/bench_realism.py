@@ -157,7 +157,7 @@ def pooled_rms(rows: list[dict], attr: str) -> float:
 
 def split_sums(rows: list[dict]) -> dict[str, float]:
     """The rows' :class:`analysis.simulation.scoring.FloorSplit` figures, summed over seeds."""
-    keys = ("n_one_lens", "one_lens_ss", "floor_ss", "n_rest", "rest_ss")
+    keys = ("n_one_lens", "one_lens_ss", "floor_ss", "n_rest", "rest_ss", "n_open", "open_ss", "open_floor_ss")
     return {k: sum(r["floor_split"][k] for r in rows) for k in keys}
 
 
@@ -178,6 +178,18 @@ def rest_rms(rows: list[dict]) -> float:
     return math.sqrt(ratio(t["rest_ss"], t["n_rest"]))
 
 
+def pinned_rms(rows: list[dict]) -> float:
+    """Pooled absolute depth error (mm) of those of them whose depth their pixels pin (not open)."""
+    t = split_sums(rows)
+    return math.sqrt(ratio(t["rest_ss"] - t["open_ss"], t["n_rest"] - t["n_open"]))
+
+
+def open_over_floor(rows: list[dict]) -> float:
+    """Pooled absolute depth error of the open particles over their floor's (NaN without any)."""
+    t = split_sums(rows)
+    return math.sqrt(ratio(t["open_ss"], t["open_floor_ss"]))
+
+
 def ratio_text(v: float) -> str:
     return "-" if not np.isfinite(v) else f"{v:.2f}"
 
@@ -191,11 +203,11 @@ def pairs(rows: list[dict]) -> str:
 def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[int], size: int) -> None:
     print(f"\nsensor {size} px, seeds {' '.join(map(str, seeds))}; recall, precision and errors in %; depth and "
           "lateral errors as % of the mean 3D nearest-neighbour distance (NN), pooled over seeds; true, found: "
-          "particles in view and found (sums over seeds); x ideal = pooled depth (fit) over the same scene's with ideal optics (the ideal case's; for all and scene-bright, scene's); x bright = all's over scene-bright's (ideal optics, the particles as bright as all's: the 12x spread makes about a third of them fainter than any of scene's); bound = the Cramer-Rao bound of depth of an isolated particle of the scene (RMS over 12 of its particles blurred over 2 lens pitches or more: their depth and brightness, the case's blur and glow; analysis.simulation.bound), what no estimate from the pixels can beat; 1-lens = matched particles whose light falls in one lens (sum over seeds), x floor = their pooled absolute depth error over the depth floor's (the best estimate from their pixels alone, analysis.simulation.scoring.depth_floor; target 1.2; below 1: a prior), rest x ideal = the pooled absolute depth error of the other matched particles over that of the ideal reference's (target 1.3); pairs = shadowing pairs (true particles closer than 0.35 NN across: nearly on one line of sight) with both found, of all (sums over seeds); on refl. = false particles on a reflection (sum over seeds); time "
+          "particles in view and found (sums over seeds); x ideal = pooled depth (fit) over the same scene's with ideal optics (the ideal case's; for all and scene-bright, scene's); x bright = all's over scene-bright's (ideal optics, the particles as bright as all's: the 12x spread makes about a third of them fainter than any of scene's); bound = the Cramer-Rao bound of depth of an isolated particle of the scene (RMS over 12 of its particles blurred over 2 lens pitches or more: their depth and brightness, the case's blur and glow; analysis.simulation.bound), what no estimate from the pixels can beat; 1-lens = matched particles whose light falls in one lens (sum over seeds), x floor = their pooled absolute depth error over the depth floor's (the best estimate from their pixels alone, analysis.simulation.scoring.depth_floor; target 1.2; below 1: a prior), rest x ideal = the pooled absolute depth error of the other matched particles over that of the ideal reference's (target 1.3); open = those of them whose pixels leave the depth open along a line (near focus, the blur over one cell edge: a floor error above 1 % of NN; sum over seeds), x floor their error over their floor's; pinned x ideal = rest x ideal without the open ones (what a realistic effect does where the pixels pin the depth: the open ones land anywhere on their line, and on one frame a new draw of the noise alone moved the rest x ideal of its scene by 1.7x); pairs = shadowing pairs (true particles closer than 0.35 NN across: nearly on one line of sight) with both found, of all (sums over seeds); on refl. = false particles on a reflection (sum over seeds); time "
           "per exposure (calibration cached), peak memory of the worker (peak MB: resident; anon MB: its anonymous part, "
           "what it allocates itself, without the shared libraries' pages, whose count follows the page cache).\n")
     head = (f"| {'case':12s} | {'true':>5s} | {'found':>5s} | {'recall':>9s} | {'precision':>9s} | {'depth fit':>9s} | {'abs dZ':>6s} | "
-            f"{'x ideal':>7s} | {'x bright':>8s} | {'1-lens':>6s} | {'x floor':>7s} | {'rest x ideal':>12s} | {'bound':>5s} | {'lateral':>7s} | {'pairs':>9s} | {'on refl.':>8s} | {'time s':>9s} | "
+            f"{'x ideal':>7s} | {'x bright':>8s} | {'1-lens':>6s} | {'x floor':>7s} | {'rest x ideal':>12s} | {'open':>4s} | {'x floor':>7s} | {'pinned x ideal':>14s} | {'bound':>5s} | {'lateral':>7s} | {'pairs':>9s} | {'on refl.':>8s} | {'time s':>9s} | "
             f"{'peak MB':>7s} | {'anon MB':>7s} |")
     for scene in scenes:
         mine = [r for r in rows if r["scene"] == scene]
@@ -228,6 +240,8 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
                   f"| {ratio_text(depth_over(rs, twin(case))):>7s} | {ratio_text(depth_over(rs, bright)):>8s} "
                   f"| {split_sums(rs)['n_one_lens']:6d} | {ratio_text(over_floor(rs)):>7s} "
                   f"| {ratio_text(ratio(rest_rms(rs), rest_rms(twin(case)))):>12s} "
+                  f"| {split_sums(rs)['n_open']:4d} | {ratio_text(open_over_floor(rs)):>7s} "
+                  f"| {ratio_text(ratio(pinned_rms(rs), pinned_rms(twin(case)))):>14s} "
                   f"| {pct2(float(np.sqrt(np.nanmean([r['depth_bound_over_nn'] ** 2 for r in rs])))):>5s} "
                   f"| {pct(pooled_rms(rs, 'lateral_rms_over_nn')):>7s} "
                   f"| {pairs(rs):>9s} "

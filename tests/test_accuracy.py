@@ -101,16 +101,20 @@ def test_depth_floor_is_the_error_of_the_best_estimate():
 
 def test_floor_split_judges_one_lens_particles_by_their_floor_and_the_others_apart():
     m = model()
-    truth, p = truth_of(m, [(0.6, 1.0, (0, 0)), (3.0, -1.0, (0, 0))])
+    truth, p = truth_of(m, [(0.6, 1.0, (0, 0)), (3.0, -1.0, (0, 0)), (0.2, 1.0, (4.5, 0))])
     truth.update(X=p.x_mm, Y=p.y_mm)
     floor = floor_errors(truth, m.lattice)
     assert floor[0] != 0.0 and floor[1] == 0.0  # the wide one is pinned
+    assert 0.01 < abs(floor[2]) < 0.1  # the one over a cell edge is open, by 1-10 % of a 1 mm NN
     # Found: the one-lens particle twice as far from its truth as its best estimate, the wide one
-    # 0.01 mm off.
-    dz = np.array([-2.0 * floor[0], 0.01])
+    # 0.01 mm off, the edge-crossing one 0.02 mm.
+    dz = np.array([-2.0 * floor[0], 0.01, 0.02])
     found = {"X": p.x_mm, "Y": p.y_mm, "Z": p.z_mm + dz}
-    s = floor_split(found, truth, m.lattice, nn_mm=10.0)
-    assert (s.n_one_lens, s.n_rest) == (1, 1)
+    s = floor_split(found, truth, m.lattice, nn_mm=1.0)
+    assert (s.n_one_lens, s.n_rest, s.n_open) == (1, 2, 1)
     assert np.isclose(s.floor_ss, floor[0] ** 2)
     assert np.isclose(s.one_lens_ss, 4.0 * floor[0] ** 2)
-    assert np.isclose(s.rest_ss, 1e-4)
+    assert np.isclose(s.rest_ss, 1e-4 + 4e-4)
+    assert np.isclose(s.open_ss, 4e-4) and np.isclose(s.open_floor_ss, floor[2] ** 2)
+    # Whether a floor error counts as open is judged in NN: with a 10 mm NN it is pinned.
+    assert floor_split(found, truth, m.lattice, nn_mm=10.0).n_open == 0

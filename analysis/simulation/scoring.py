@@ -191,6 +191,12 @@ def floor_errors(truth: Mapping[str, np.ndarray], lattice: Lattice) -> np.ndarra
     return (pixel_limited_alpha(truth, lattice) - alpha) * slope
 
 
+#: A particle that is not a one-lens one counts as open (:class:`FloorSplit`) where its floor error
+#: exceeds this fraction of NN: its pixels leave the depth open along a line (a blur over one cell
+#: edge, near focus), as :func:`pixel_limited_alpha` finds, rather than pinning it.
+OPEN_FLOOR_NN = 0.01
+
+
 @dataclass
 class FloorSplit:
     """Matched particles' depth errors split where the floor applies: squared errors (mm^2) summed,
@@ -199,6 +205,8 @@ class FloorSplit:
     ``one_lens_ss`` sums the squared ``|dZ|`` of the matched particles whose light falls in one
     lens (:func:`single_lens`), ``floor_ss`` their floor's (:func:`floor_errors`): their ratio's
     root is how far above the floor they are. ``rest_ss`` sums the other matched particles'.
+    Of those, ``open_ss`` sums the open ones' (floor error above :data:`OPEN_FLOOR_NN` of NN) and
+    ``open_floor_ss`` their floor's; the rest of the rest are pinned by their pixels.
     """
 
     n_one_lens: int
@@ -206,6 +214,9 @@ class FloorSplit:
     floor_ss: float
     n_rest: int
     rest_ss: float
+    n_open: int
+    open_ss: float
+    open_floor_ss: float
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -214,7 +225,8 @@ class FloorSplit:
 def floor_split(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], lattice: Lattice, *,
                 nn_mm: float | None = None, max_distance: float = 0.5) -> FloorSplit:
     """The matched particles' absolute depth errors, one-lens particles (with their floor) apart
-    from the rest: the one-lens ones are judged against the floor, the others against ideal optics.
+    from the rest: the one-lens ones are judged against the floor, the others against ideal optics;
+    of those, the open ones (:data:`OPEN_FLOOR_NN`) also against their floor.
 
     Parameters
     ----------
@@ -223,13 +235,17 @@ def floor_split(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray]
     lattice : Lattice
         The exposure's micro-lens lattice.
     """
+    if nn_mm is None:
+        nn_mm = mean_nn_distance(*(np.asarray(truth[c], float) for c in ("X", "Y", "Z")))
     rows, cols = match(found, truth, nn_mm=nn_mm, max_distance=max_distance)
     dz = np.asarray(found["Z"], float)[rows] - np.asarray(truth["Z"], float)[cols]
     one = single_lens(truth, lattice)[cols]
     floor = floor_errors(truth, lattice)[cols]
+    open_ = ~one & (np.abs(floor) > OPEN_FLOOR_NN * nn_mm)
     return FloorSplit(n_one_lens=int(one.sum()), one_lens_ss=float(np.sum(dz[one] ** 2)),
                       floor_ss=float(np.sum(floor[one] ** 2)), n_rest=int((~one).sum()),
-                      rest_ss=float(np.sum(dz[~one] ** 2)))
+                      rest_ss=float(np.sum(dz[~one] ** 2)), n_open=int(open_.sum()),
+                      open_ss=float(np.sum(dz[open_] ** 2)), open_floor_ss=float(np.sum(floor[open_] ** 2)))
 
 
 def mean_nn_distance(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> float:
