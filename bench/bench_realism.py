@@ -179,7 +179,8 @@ def rest_rms(rows: list[dict]) -> float:
 
 
 def pinned_rms(rows: list[dict]) -> float:
-    """Pooled absolute depth error (mm) of those of them whose depth their pixels pin (not open)."""
+    """Pooled absolute depth error (mm) of the particles blurred over more than one lens whose depth
+    their pixels pin (the open ones left out; NaN without any)."""
     t = split_sums(rows)
     return math.sqrt(ratio(t["rest_ss"] - t["open_ss"], t["n_rest"] - t["n_open"]))
 
