@@ -30,15 +30,19 @@ def peaks_at(grid, fit):
                  residual=fit.residual, prominence=np.ones(n))
 
 
-def line_of_sight_scene(alphas, brightness):
-    """Particles on one chief ray (a shadowing pair when two), rendered on a small simulated sensor."""
+def line_of_sight_scene(alphas, brightness, across_pitches=None):
+    """Particles on one chief ray (a shadowing pair when two), rendered on a small simulated sensor;
+    with ``across_pitches``, each moved that many lens pitches across the rows of lenses from it."""
     model = CameraModel.from_metadata(simulated_camera_metadata(size=320))
     optics = model.optics
     table = build_table_from_model(model, white_coverage(model), rim_px=FIT_TABLE_RIM_PX)
     s_hat = 0.2 * table.basis_m[:, 0] + 0.1 * table.basis_m[:, 1]
+    row = table.basis_m[:, 0]
+    across = np.array([row[1], -row[0]]) * np.asarray(across_pitches if across_pitches is not None else
+                                                      np.zeros(len(alphas)), float)[:, None]
     z = np.array([float(optics.z_of_alpha(a)) for a in alphas])
-    ps = Particles(s_hat[0] * z / optics.exit_pupil_m, s_hat[1] * z / optics.exit_pupil_m, z,
-                   np.asarray(brightness, float))
+    ps = Particles((s_hat[0] + across[:, 0]) * z / optics.exit_pupil_m,
+                   (s_hat[1] + across[:, 1]) * z / optics.exit_pupil_m, z, np.asarray(brightness, float))
     return model, table, s_hat, render_exposure(model, ps, seed=5)
 
 

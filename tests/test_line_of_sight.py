@@ -76,6 +76,29 @@ def test_a_true_pair_on_one_line_of_sight_is_two():
     assert not one_particle(fitter, fit, np.array([faint]), np.array([bright])).any()
 
 
+@pytest.mark.parametrize("across, kept", [(1.25, 2), (0.0, 1)])
+def test_two_particles_either_side_of_focus_a_pitch_apart_are_not_merged(across, kept):
+    """Near focus a fit's place across the line of sight is sharp: two fits of a particle's light each,
+    1.25 pitches apart (within the merge distance in the image and in alpha, as ideal ball 153 lost
+    one), are two particles; two fits of one particle, started 0.3 pitch either side of it, one."""
+    truth, brightness = [0.9988, 1.0010], [1450.0, 1540.0]
+    if not across:  # the second particle alone
+        truth, brightness = truth[1:], brightness[1:]
+    model, table, s_hat, image = line_of_sight_scene(truth, brightness, [0.0, across][-len(truth):])
+    fitter, _, _ = one_fit(model, table, s_hat, image, truth[0])
+    row = table.basis_m[:, 0] / np.hypot(*table.basis_m[:, 0])
+    start = (np.array([0.0, 1.25]) if across else np.array([-0.3, 0.3])) * fitter.pitch_m
+    fit = fitter.fit(s_hat[0] + start * row[1], s_hat[1] - start * row[0], np.resize(truth, 2))
+    for _ in range(2):  # as deblending refits them
+        fit = fitter.fit(fit.sx_m, fit.sy_m, fit.alpha, subtract=fitter.render(fit), own=fit)
+    gap_px = np.hypot(*np.subtract(*(np.column_stack(fitter.grid.to_pixels(fit.sx_m, fit.sy_m)))))
+    assert gap_px < fitter.merge_radius_px and abs(np.diff(fit.alpha)[0]) < fitter.merge_alpha
+    _, unique = fitter.unique(peaks_at(fitter.grid, fit), fit)
+    assert len(unique) == kept
+    if kept == 2:
+        assert np.allclose(np.sort(unique.alpha), truth, atol=4e-4)
+
+
 def _refit_pair(alphas, truth_alphas, brightness):
     """:func:`refit_blurred` on two fits on one chief ray (as :func:`pair_fits` makes them)."""
     from analysis.detection.rejections import Rejections

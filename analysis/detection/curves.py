@@ -12,7 +12,7 @@ fitted by least squares to the points around it, and ``(x, y)`` is interpolated 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 from numba import njit
@@ -340,14 +340,15 @@ def merge_duplicates(peaks: Peaks, *, radius_px: float = 1.5, alpha_tolerance: f
 
 def unique_indices(peaks: Peaks, *, radius_px: float, alpha_tolerance: float,
                    priority: np.ndarray | None = None, settled: int = 0,
-                   alpha_sigma: np.ndarray | None = None, max_sigmas: float = np.inf) -> np.ndarray:
+                   alpha_sigma: np.ndarray | None = None, max_sigmas: float = np.inf,
+                   apart: Callable[[int, int], bool] | None = None) -> np.ndarray:
     """Indices of the peaks to keep when near-duplicates are merged, in their original order.
 
     Of peaks within ``radius_px`` (image) and ``alpha_tolerance`` (alpha) of each other, the one
     with the highest ``priority`` (default ``peak_height``) is kept; the first ``settled`` peaks
     (particles already accepted) win over the others whatever their priority. With
     ``alpha_sigma`` (each peak's alpha uncertainty), a pair must also lie within ``max_sigmas``
-    of their combined uncertainty in alpha.
+    of their combined uncertainty in alpha; pairs for which ``apart(i, j)`` holds are never merged.
     """
     n = len(peaks)
     if n < 2:
@@ -363,8 +364,9 @@ def unique_indices(peaks: Peaks, *, radius_px: float, alpha_tolerance: float,
             if j == i or removed[j]:
                 continue
             gap = abs(peaks.alpha[j] - peaks.alpha[i])
-            if gap <= alpha_tolerance and (alpha_sigma is None
-                                           or gap <= max_sigmas * np.hypot(alpha_sigma[i], alpha_sigma[j])):
+            if (gap <= alpha_tolerance
+                    and (alpha_sigma is None or gap <= max_sigmas * np.hypot(alpha_sigma[i], alpha_sigma[j]))
+                    and (apart is None or not apart(i, j))):
                 removed[j] = True
     return np.flatnonzero(~removed)
 
