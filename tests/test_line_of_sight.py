@@ -91,8 +91,8 @@ def test_two_particles_either_side_of_focus_a_pitch_apart_are_not_merged(across,
     fit = fitter.fit(s_hat[0] + start * row[1], s_hat[1] - start * row[0], np.resize(truth, 2))
     for _ in range(2):  # as deblending refits them
         fit = fitter.fit(fit.sx_m, fit.sy_m, fit.alpha, subtract=fitter.render(fit), own=fit)
-    gap_px = np.hypot(*np.subtract(*(np.column_stack(fitter.grid.to_pixels(fit.sx_m, fit.sy_m)))))
-    assert gap_px < fitter.merge_radius_px and abs(np.diff(fit.alpha)[0]) < fitter.merge_alpha
+    x, y = fitter.grid.to_pixels(fit.sx_m, fit.sy_m)
+    assert np.hypot(np.diff(x)[0], np.diff(y)[0]) < fitter.merge_radius_px and abs(np.diff(fit.alpha)[0]) < fitter.merge_alpha
     _, unique = fitter.unique(peaks_at(fitter.grid, fit), fit)
     assert len(unique) == kept
     if kept == 2:

@@ -120,19 +120,17 @@ def estimate_drift(image: np.ndarray, lattice: Lattice, white_phases: tuple[np.n
     weight = 1.0 / sigma[rows, k]
     params, keep = None, np.ones(target.size, dtype=bool)
     for _ in range(2):
-        # A shift needs two lattice directions: one alone (a featureless frame's leakage) leaves
-        # the fit singular, and its "covariance" meaningless.
-        if keep.sum() < MIN_BLOCKS or np.unique(k[keep]).size < 2:
+        if keep.sum() < MIN_BLOCKS:
             return None
         params, *_ = np.linalg.lstsq(design[keep] * weight[keep, None], target[keep] * weight[keep], rcond=None)
         residual = (target - design @ params) * weight
         scale = max(1.4826 * float(np.median(np.abs(residual[keep]))), 1.0)
         keep = np.abs(residual) < OUTLIER_SIGMAS * scale
-    if np.unique(k[keep]).size < 2:
-        return None
+    # A shift needs two lattice directions: one alone (a featureless frame's leakage) leaves the
+    # fit singular, and its covariance meaningless (with numpy 2.4, negative).
     a = design[keep] * weight[keep, None]
     covariance = np.linalg.inv(a.T @ a) * scale ** 2
-    if not (covariance[0, 0] > 0 and covariance[1, 1] > 0):  # numerically singular all the same
+    if np.unique(k[keep]).size < 2 or not (covariance[0, 0] > 0 and covariance[1, 1] > 0):
         return None
     return LatticeDrift(shift_px=(float(params[0]), float(params[1])), rotation_rad=float(params[2]),
                         sigma_px=float(np.sqrt(max(covariance[0, 0], covariance[1, 1]))),
