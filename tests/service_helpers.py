@@ -38,10 +38,12 @@ def assert_matches_truth(columns: dict, truth: np.ndarray) -> None:
     assert np.median(dist) < 0.35 and dist.max() < 0.8, dist
 
 
-def variant_lfp(path: Path, k: int, *, serial: str | None = None) -> bytes:
-    """A different but valid exposure: the picture with one raw pixel changed (and maybe its serial)."""
+def variant_lfp(path: Path, k: int, *, serial: str | None = None, dark: bool = False) -> bytes:
+    """A different but valid exposure: the picture with one raw pixel changed (and maybe its serial);
+    ``dark``: the picture replaced by its background level first (a shot with no particle in view,
+    which the pipeline gets through in a fraction of the time)."""
     original = read_exposure(path)
-    image = original.image.copy()
+    image = np.full_like(original.image, np.median(original.image)) if dark else original.image.copy()
     image[1, k % image.shape[1]] += 1
     private = dict(original.private_metadata)
     if serial is not None:

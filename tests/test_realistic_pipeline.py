@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
 from analysis.cache import Cache
-from analysis.calibration.calibrate import Calibration, calibrate
+from analysis.calibration.calibrate import calibrate
 from analysis.camera.model import CameraModel
 from analysis.formats.exposure import Exposure
 from analysis.depth.refine import WIDE_BLUR_PITCHES
@@ -230,10 +232,10 @@ def test_a_faint_blurred_partner_is_found_where_its_light_converges_as_a_point_m
     assert s.n_matched >= 16 and _all_real(result, pairs), s
 
 
-def _blurred_cloud(seed: int) -> tuple[Exposure, Calibration, dict[str, np.ndarray], float, Particles]:
-    """A crop of the 400-particle cloud in front of focus through a 0.8 px blur with a 10x brightness
-    spread: the exposure, its camera's calibration, the true particles in view, their spacing, and
-    every particle of the cloud (those just outside the crop light its edge)."""
+@functools.lru_cache(maxsize=1)
+def _blurred_camera():
+    """The camera of the blurred cloud's crops (0.8 px blur), its calibration, and one cache of
+    look-up tables for all of them (the crops share the calibration)."""
     from analysis.simulation.camera_effects import CameraEffects
     from analysis.simulation.realism import Realism
 
@@ -242,21 +244,40 @@ def _blurred_cloud(seed: int) -> tuple[Exposure, Calibration, dict[str, np.ndarr
     private = simulated_private_metadata()
     camera = CameraEffects.build(Realism(blur_px=0.8), serial="A202160042")
     white = WhiteImage.from_image("MOD_0001", render_white_image(model, seed=101, camera=camera), meta, private)
+    return meta, private, model, camera, calibrate(white), Cache()
+
+
+@functools.lru_cache(maxsize=None)
+def _blurred_cloud(seed: int) -> tuple[Exposure, dict[str, np.ndarray], float, Particles]:
+    """A crop of the 400-particle cloud in front of focus through a 0.8 px blur with a 10x brightness
+    spread: the exposure, the true particles in view, their spacing, and every particle of the
+    cloud (those just outside the crop light its edge)."""
+    meta, private, model, camera, _, _ = _blurred_camera()
     particles = make_scenario("cloud", seed, brightness_spread=10.0).particles
     image = render_exposure(model, particles, seed=seed, background_dn=40.0, camera=camera)
     shown = in_view(model, particle_truth(model, particles))
     columns = {"X": particles.x_mm[shown], "Y": particles.y_mm[shown], "Z": particles.z_mm[shown]}
-    return (Exposure(image, meta, private), calibrate(white), columns,
-            mean_nn_distance(columns["X"], columns["Y"], columns["Z"]), particles)
+    return (Exposure(image, meta, private), columns, mean_nn_distance(columns["X"], columns["Y"], columns["Z"]),
+            particles)
 
 
-def _found_and_false(found: dict[str, np.ndarray], in_view: dict[str, np.ndarray], everyone: Particles,
-                     nn: float) -> tuple[int, int]:
-    """Particles in view that were found, and found particles that are none of ``everyone`` (in view
-    or not): on a crop, a particle just outside it lights its edge, and finding it is no error
-    (on the blurred cloud's crops those are nearly all the particles that match none in view)."""
+def _found_and_false(seed: int, params: PipelineParams | None = None) -> tuple[int, int]:
+    """On the blurred cloud's crop ``seed``: particles in view that were found, and found particles
+    that are none of the cloud's (in view or not): on a crop, a particle just outside it lights its
+    edge, and finding it is no error (on these crops those are nearly all the particles that match
+    none in view)."""
+    exposure, in_view_, nn, everyone = _blurred_cloud(seed)
+    _, _, _, _, calibration, cache = _blurred_camera()
+    found = process(exposure, calibration, params, cache=cache).particles
     every = {"X": everyone.x_mm, "Y": everyone.y_mm, "Z": everyone.z_mm}
-    return score(found, in_view, nn_mm=nn).n_matched, len(found["X"]) - match(found, every, nn_mm=nn)[0].size
+    return score(found, in_view_, nn_mm=nn).n_matched, len(found["X"]) - match(found, every, nn_mm=nn)[0].size
+
+
+@functools.lru_cache(maxsize=None)
+def _found_and_false_by_default(seed: int) -> tuple[int, int]:
+    """:func:`_found_and_false` with every default, run once per crop for the tests that compare a
+    rule with its default (call it only while the rules are at their defaults)."""
+    return _found_and_false(seed)
 
 
 @pytest.mark.parametrize("seed", [6, 8])
@@ -266,11 +287,8 @@ def test_the_late_pass_finds_blurred_particles_the_first_passes_missed(seed):
     and its new fits are deblended with the rest, so few false ones come with them (one each; at
     most one per three real ones asserted). Seed 6 also once stopped the first fits (a point whose
     last gathered lens had no sample)."""
-    exposure, calibration, columns, nn, everyone = _blurred_cloud(seed)
-    cache = Cache()
-    (without, false_without), (with_late, false_with) = (
-        _found_and_false(process(exposure, calibration, PipelineParams(late_pass=late), cache=cache).particles,
-                         columns, everyone, nn) for late in (False, True))
+    without, false_without = _found_and_false(seed, PipelineParams(late_pass=False))
+    with_late, false_with = _found_and_false_by_default(seed)
     gained = with_late - without
     assert gained >= 2, (with_late, without)
     assert false_with <= false_without + gained // 3, (false_with, false_without, gained)
@@ -285,13 +303,9 @@ def test_the_late_pass_keeps_blurred_particles_whose_pattern_the_noise_hides(see
     turned off."""
     from analysis.pipeline import passes
 
-    exposure, calibration, columns, nn, everyone = _blurred_cloud(seed)
-    cache = Cache()
-    with_rule, false_with = _found_and_false(process(exposure, calibration, cache=cache).particles, columns,
-                                             everyone, nn)
+    with_rule, false_with = _found_and_false_by_default(seed)
     monkeypatch.setattr(passes, "THIN_PATTERN_PITCHES", np.inf)
-    without, false_without = _found_and_false(process(exposure, calibration, cache=cache).particles, columns,
-                                              everyone, nn)
+    without, false_without = _found_and_false(seed)
     gained = with_rule - without
     assert gained >= 2, (with_rule, without)
     # A wrong particle is worse than a missing one: at most one false one more per three real ones.
@@ -308,17 +322,12 @@ def test_the_late_pass_finds_faint_blurred_particles_under_the_first_cut(monkeyp
     background sample by sample, the first passes found fewer of these and the cut added 10.)"""
     from analysis.pipeline import passes
 
-    rule = passes.RESIDUAL_NOISE_SIGMAS
     gained = more_false = 0
     for seed in (3, 6):
-        exposure, calibration, columns, nn, everyone = _blurred_cloud(seed)
-        cache = Cache()
-        monkeypatch.setattr(passes, "RESIDUAL_NOISE_SIGMAS", rule)
-        lower, false_lower = _found_and_false(process(exposure, calibration, cache=cache).particles, columns,
-                                              everyone, nn)
+        lower, false_lower = _found_and_false_by_default(seed)
         monkeypatch.setattr(passes, "RESIDUAL_NOISE_SIGMAS", PipelineParams().noise_sigmas)
-        usual, false_usual = _found_and_false(process(exposure, calibration, cache=cache).particles, columns,
-                                              everyone, nn)
+        usual, false_usual = _found_and_false(seed)
+        monkeypatch.undo()
         gained += lower - usual
         more_false += false_lower - false_usual
     assert gained >= 3 and more_false <= gained // 3, (gained, more_false)

@@ -51,10 +51,16 @@ def target(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def calibrated(target, tmp_path_factory):
+def cache(tmp_path_factory) -> list[str]:
+    """One calibration and look-up table cache for the camera's runs, as a lab's machine keeps."""
+    return ["--cache", str(tmp_path_factory.mktemp("cache"))]
+
+
+@pytest.fixture(scope="module")
+def calibrated(target, cache, tmp_path_factory):
     out = tmp_path_factory.mktemp("metric")
     code, stdout, err = _run("calibrate-target", str(target), "--calibration", str(target / "calibration"),
-                             "--positions-file", str(target / "target.json"), "--out", str(out), "--no-cache",
+                             "--positions-file", str(target / "target.json"), "--out", str(out), *cache,
                              "--quiet")
     assert code == 0, err
     summary = json.loads(stdout)
@@ -80,7 +86,7 @@ def test_held_back_positions_meet_the_targets(calibrated, target):
     assert metric.volume.x_mm[0] == pytest.approx(-metric.volume.x_mm[1])
 
 
-def test_a_layer_through_the_same_optics_comes_out_in_millimetres(calibrated, tmp_path):
+def test_a_layer_through_the_same_optics_comes_out_in_millimetres(calibrated, cache, tmp_path):
     _, path = calibrated
     layer = tmp_path / "layer"
     code, _, err = _run("simulate", "--scenario", "tilted-layer", "--size", SIZE, "--quiet", "--out", str(layer),
@@ -90,7 +96,7 @@ def test_a_layer_through_the_same_optics_comes_out_in_millimetres(calibrated, tm
     for name, extra in (("metric", ["--metric-calibration", str(path.parent)]), ("thin", [])):
         out = tmp_path / f"{name}.csv"
         code, stdout, err = _run("process", str(layer / "IMG_0001.lfp"), "--calibration", str(layer / "calibration"),
-                                 "--out", str(out), "--no-cache", "--quiet", *extra)
+                                 "--out", str(out), *cache, "--quiet", *extra)
         assert code == 0, err
         tables[name] = (_table(out), json.loads(stdout)["exposures"][0]["warnings"])
     truth = _table(layer / "IMG_0001.truth.csv")
@@ -117,10 +123,10 @@ def test_a_layer_through_the_same_optics_comes_out_in_millimetres(calibrated, tm
     assert score(thin, truth).n_matched == 0
 
 
-def test_positions_that_do_not_match_the_exposures_are_refused(target, tmp_path):
+def test_positions_that_do_not_match_the_exposures_are_refused(target, cache, tmp_path):
     sidecar = json.loads((target / "target.json").read_text())
     positions = [str(z) for z in sidecar["positions_mm"]]
-    calibration = ["--calibration", str(target / "calibration"), "--pitch", "1", "--no-cache", "--quiet",
+    calibration = ["--calibration", str(target / "calibration"), "--pitch", "1", *cache, "--quiet",
                    "--out", str(tmp_path / "m.json")]
     code, _, err = _run("calibrate-target", str(target), "--positions", *positions[:4], *calibration)
     assert code == 1 and "5 exposures but 4 stage positions" in err

@@ -25,11 +25,17 @@ def run(tmp_path_factory):
     return folder
 
 
-def test_track_links_a_run_in_shot_time_order_and_recovers_the_truth(run, tmp_path, capsys) -> None:
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    """One calibration and look-up table cache for the run's camera, as a lab's machine keeps."""
+    return tmp_path_factory.mktemp("cache")
+
+
+def test_track_links_a_run_in_shot_time_order_and_recovers_the_truth(run, cache, tmp_path, capsys) -> None:
     out = tmp_path / "tracks.csv"
     summary = tmp_path / "structure.csv"
     code = main(["track", str(run), "--calibration", str(run / "calibration"), "--out", str(out), *RANGE,
-                 "--summary", str(summary), "--cache", str(tmp_path / "cache"), "--quiet"])
+                 "--summary", str(summary), "--cache", str(cache), "--quiet"])
     assert code == 0
     report = json.loads(capsys.readouterr().out)
     linked = pd.read_csv(out)
@@ -49,10 +55,10 @@ def test_track_links_a_run_in_shot_time_order_and_recovers_the_truth(run, tmp_pa
     assert structure["count"].tolist() == linked.groupby("frame").size().tolist()
 
 
-def test_link_takes_a_processed_table_and_writes_nexus(run, tmp_path, capsys) -> None:
+def test_link_takes_a_processed_table_and_writes_nexus(run, cache, tmp_path, capsys) -> None:
     table = tmp_path / "run.csv"
     assert main(["process", str(run), "--calibration", str(run / "calibration"), "--out", str(table), *RANGE,
-                 "--cache", str(tmp_path / "cache"), "--quiet"]) == 0
+                 "--cache", str(cache), "--quiet"]) == 0
     capsys.readouterr()
     processed = pd.read_csv(table)
     assert "t" in processed and "particle" not in processed  # the batch's clock; no trajectories yet
@@ -75,19 +81,21 @@ def test_link_takes_a_processed_table_and_writes_nexus(run, tmp_path, capsys) ->
 
 # trackpy 0.7 calls sort_values(inplace=True), which pandas 3.1 deprecates.
 @pytest.mark.filterwarnings("ignore:The inplace keyword")
-def test_a_trackpy_user_links_results_with_trackpy_itself(run) -> None:
+def test_a_trackpy_user_links_results_with_trackpy_itself(run, cache) -> None:
     import trackpy
 
+    from analysis.cache import Cache
     from analysis.calibration.cache import load_calibration
     from analysis.formats.exposure import read_exposure
     from analysis.pipeline.params import PipelineParams
     from analysis.pipeline.process import process
 
-    frames = []
+    frames, tables = [], Cache(directory=cache)
     for k, path in enumerate(sorted(run.glob("IMG_*.lfp"))):
         exposure = read_exposure(path)
-        calibration = load_calibration(run / "calibration", exposure.metadata, serial=exposure.serial)
-        result = process(exposure, calibration, PipelineParams(alpha_min=0.999, alpha_max=1.026))
+        calibration = load_calibration(run / "calibration", exposure.metadata, serial=exposure.serial,
+                                       cache_dir=cache)
+        result = process(exposure, calibration, PipelineParams(alpha_min=0.999, alpha_max=1.026), cache=tables)
         frames.append(result.to_dataframe(frame=k, t=float(k)))
     table = pd.concat(frames, ignore_index=True)
     assert list(table.columns[:4]) == ["frame", "t", "index", "x"]

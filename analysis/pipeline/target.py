@@ -45,7 +45,7 @@ log = logging.getLogger(__name__)
 
 #: How a target is processed: no particle hides behind another on a plate, so neither hidden
 #: particles nor a second detection pass are looked for.
-TARGET_PARAMS = PipelineParams(shadow_probe=0.0, passes=1)
+TARGET_PARAMS = PipelineParams(shadow_probe=0.0, passes=1, late_pass=False)
 #: A target's dots are alike: detections fainter than this fraction of the median dot are the
 #: left-over light of strongly blurred neighbours, not dots.
 DOT_INTENSITY_FRACTION = 0.4
