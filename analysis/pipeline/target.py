@@ -44,7 +44,9 @@ from .result import Result
 log = logging.getLogger(__name__)
 
 #: How a target is processed: no particle hides behind another on a plate, so neither hidden
-#: particles nor a second detection pass are looked for.
+#: particles nor a second detection pass are looked for; nor faint blurred ones the first passes
+#: missed (the late pass): a target's dots are alike and bright (the same dots on three targets
+#: without it, 1.1-1.4x faster).
 TARGET_PARAMS = PipelineParams(shadow_probe=0.0, passes=1, late_pass=False)
 #: A target's dots are alike: detections fainter than this fraction of the median dot are the
 #: left-over light of strongly blurred neighbours, not dots.
