@@ -88,7 +88,10 @@ def warm_up_kernels(say: Callable[[str], None]) -> float:
                 task = JobTask(exposure_id="warm-up", raw_paths=(str(files.lfp[0]),),
                                calibration_dir=str(files.calibration_dir),
                                calibration_cache_dir=str(Path(tmp) / kind / "cache"), keep_slices=True)
+                # Twice: a calibration just fitted holds writable arrays, one read back from the
+                # cache read-only ones, and numba compiles each kind of array apart.
                 output = run_task(task, progress)
+                run_task(task)
             say(f"  analysis ready ({time.perf_counter() - t:.1f} s, {output.particles} particles found)")
         # What each service worker runs at start, so its types are in the cache as well.
         with still_working(say, "compiling what a service worker loads at start"):
