@@ -61,39 +61,34 @@ def cache_dir() -> str:
 
 def warm_up_kernels(say: Callable[[str], None]) -> float:
     """Compile (or load) every kernel a job and the demo use; returns the seconds it took."""
-    from analysis.simulation.realism import Realism
-    from analysis.simulation.scenario_files import write_scenario
-    from service.pipeline_task import run_task, warm_up
-    from service.results import JobTask
-
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="plenodust-warm-up-") as tmp:
-        # A real camera's shot takes paths an ideal one does not (lattice drift, structured
-        # background, defects, censored pixels): one shot of each, or the first real job compiles.
-        for kind, realism in (("ideal", None), ("realistic", Realism.typical())):
-            with still_working(say, f"compiling the simulator's kernels (rendering a small cluster, {kind} camera)"):
-                files = write_scenario(Path(tmp) / kind, "ball", 1, count=1, size=WARM_UP_SIZE_PX, realism=realism,
-                                       progress=lambda line: None)
-            say(f"  simulator ready ({time.perf_counter() - start:.1f} s)")
-            t = time.perf_counter()
-            stages: list[str] = []
+        with still_working(say, "compiling the simulator's kernels (rendering a small cluster)"):
+            from analysis.simulation.scenario_files import write_scenario
 
-            def progress(fraction: float, stage: str | None = None) -> None:
-                if stage and (not stages or stages[-1] != stage):
-                    stages.append(stage)
-                    say(f"  {stage} ({time.perf_counter() - t:.1f} s)")
+            files = write_scenario(Path(tmp) / "sim", "ball", 1, count=1, size=WARM_UP_SIZE_PX,
+                                   progress=lambda line: None)
+        say(f"  simulator ready ({time.perf_counter() - start:.1f} s)")
+        t = time.perf_counter()
+        stages: list[str] = []
 
-            with still_working(say, f"compiling the analysis kernels ({kind} camera: calibration, refocus, "
-                                    "detection, ray fit)"):
-                task = JobTask(exposure_id="warm-up", raw_paths=(str(files.lfp[0]),),
-                               calibration_dir=str(files.calibration_dir),
-                               calibration_cache_dir=str(Path(tmp) / kind / "cache"), keep_slices=True)
-                # Twice: a calibration just fitted holds writable arrays, one read back from the
-                # cache read-only ones, and numba compiles each kind of array apart.
-                output = run_task(task, progress)
-                run_task(task)
-            say(f"  analysis ready ({time.perf_counter() - t:.1f} s, {output.particles} particles found)")
+        def progress(fraction: float, stage: str | None = None) -> None:
+            if stage and (not stages or stages[-1] != stage):
+                stages.append(stage)
+                say(f"  {stage} ({time.perf_counter() - t:.1f} s)")
+
+        with still_working(say, "compiling the analysis kernels (calibration, refocus, detection, ray fit)"):
+            from service.pipeline_task import run_task
+            from service.results import JobTask
+
+            task = JobTask(exposure_id="warm-up", raw_paths=(str(files.lfp[0]),),
+                           calibration_dir=str(files.calibration_dir),
+                           calibration_cache_dir=str(Path(tmp) / "cache"), keep_slices=True)
+            output = run_task(task, progress)
+        say(f"  analysis ready ({time.perf_counter() - t:.1f} s, {output.particles} particles found)")
         # What each service worker runs at start, so its types are in the cache as well.
+        from service.pipeline_task import warm_up
+
         with still_working(say, "compiling what a service worker loads at start"):
             warm_up()
     return time.perf_counter() - start
