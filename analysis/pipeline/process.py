@@ -379,8 +379,22 @@ def _survey(image: np.ndarray, table: LightFieldTable, background: BackgroundMap
     over glow than each lens's own noise would: the range needs the clear particles only, and the
     faint outskirts of compact glints' blurred disks, which the lower cut lets in, then outshine
     particles on their lines of sight in the coarse stack (nine such particles lost, the range set
-    at the glints)."""
-    samples = select_samples(image, table, background=background, noise_sigmas=params.noise_sigmas, local=False)
+    at the glints). Where that cut leaves no point source, the survey looks again with each lens's
+    own noise: the frame's model follows the light the background leaves unexplained (a reflection
+    under a wider blur: its variance per DN of light 4x the glow's), and a target far from focus,
+    its dots blurred over 17 pitches, then showed none."""
+    found, lone = _survey_once(image, table, background, survey, params, threshold, cache, fitter, lens_noise,
+                               local=False)
+    if found is None:
+        found, lone = _survey_once(image, table, background, survey, params, threshold, cache, fitter, lens_noise,
+                                   local=True)
+    return found, lone
+
+
+def _survey_once(image: np.ndarray, table: LightFieldTable, background: BackgroundMap, survey: np.ndarray,
+                 params: PipelineParams, threshold: float, cache: Cache, fitter: RayFitter | None,
+                 lens_noise: np.ndarray, *, local: bool) -> tuple[np.ndarray | None, np.ndarray]:
+    samples = select_samples(image, table, background=background, noise_sigmas=params.noise_sigmas, local=local)
     sub = subaperture_image(image, table, fraction=params.aperture_fraction, blur_sigma_px=params.blur_sigma_px,
                             grid=table.grid, samples=samples, cache=cache)
     stack = refocus_stack(image, table, survey, grid=table.grid, samples=samples, cache=cache)
