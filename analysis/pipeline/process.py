@@ -381,8 +381,8 @@ def _survey(image: np.ndarray, table: LightFieldTable, background: BackgroundMap
     particles on their lines of sight in the coarse stack (nine such particles lost, the range set
     at the glints). Where that cut leaves no point source, the survey looks again with each lens's
     own noise: the frame's model follows the light the background leaves unexplained (a reflection
-    under a wider blur: its variance per DN of light 4x the glow's), and a target far from focus,
-    its dots blurred over 17 pitches, then showed none."""
+    under a wider blur: 4x the variance per DN of light that the same frame shows under the ideal
+    blur), and a target far from focus, its dots blurred over 17 pitches, then showed none."""
     found, lone = _survey_once(image, table, background, survey, params, threshold, cache, fitter, lens_noise,
                                local=False)
     if found is None:
