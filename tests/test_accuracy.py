@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from analysis.simulation.scoring import depth_floor, floor_errors, floor_split, pixel_limited_alpha, single_lens
+from analysis.simulation.scoring import (at_floor, depth_floor, floor_errors, floor_split, match, pixel_limited_alpha,
+                                         single_lens)
 from analysis.camera.model import CameraModel
 from analysis.simulation.scenarios import Particles
 from analysis.simulation.camera import simulated_camera_metadata
@@ -118,3 +119,20 @@ def test_floor_split_judges_one_lens_particles_by_their_floor_and_the_others_apa
     assert np.isclose(s.open_ss, 4e-4) and np.isclose(s.open_floor_ss, floor[2] ** 2)
     # Whether a floor error counts as open is judged in NN: with a 10 mm NN it is pinned.
     assert floor_split(found, truth, m.lattice, nn_mm=10.0).n_open == 0
+
+
+def test_a_particle_found_at_its_floor_beyond_the_match_is_counted_apart():
+    m = model()
+    truth, p = truth_of(m, [(0.6, 1.0, (0, 0)), (3.0, -1.0, (0, 0))])
+    truth.update(X=p.x_mm, Y=p.y_mm)
+    floor = floor_errors(truth, m.lattice)
+    nn = abs(floor[0])  # the one-lens particle's best estimate lies beyond the match (0.5 NN)
+    # Found where its pixels put it (its floor), and the pinned one as far off: both beyond the
+    # match, only the first at its floor.
+    found = {"X": p.x_mm, "Y": p.y_mm, "Z": p.z_mm + np.array([floor[0], floor[0]])}
+    assert match(found, truth, nn_mm=nn)[0].size == 0
+    assert at_floor(found, truth, m.lattice, nn_mm=nn) == 1
+    # Twice its floor's error, or across from it by more than the match allows: not at its floor.
+    assert at_floor({**found, "Z": p.z_mm + 2.0 * floor[0]}, truth, m.lattice, nn_mm=nn) == 0
+    assert at_floor({**found, "X": p.x_mm + nn}, truth, m.lattice, nn_mm=nn) == 0
+

@@ -346,6 +346,29 @@ def score(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], *, n
                  pairs_separated=separated)
 
 
+def at_floor(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], lattice: Lattice, *,
+             nn_mm: float | None = None, max_distance: float = 0.5, slack: float = 1.2) -> int:
+    """How many true particles the match left out were found at their depth floor: a found particle
+    the match left out, within ``max_distance`` of NN across of one whose pixels leave its depth open
+    (one lens, or open: :data:`OPEN_FLOOR_NN`), its depth error at most ``slack`` times that
+    particle's floor error (:func:`floor_errors`). :func:`match` counts each as missed and as false,
+    though the issue judges such a depth against its floor (within 1.2x)."""
+    tx, ty, tz = (np.asarray(truth[c], float) for c in ("X", "Y", "Z"))
+    fx, fy, fz = (np.asarray(found[c], float) for c in ("X", "Y", "Z"))
+    nn = mean_nn_distance(tx, ty, tz) if nn_mm is None else float(nn_mm)
+    rows, cols = match(found, truth, nn_mm=nn, max_distance=max_distance)
+    miss = np.setdiff1d(np.arange(tx.size), cols)
+    extra = np.setdiff1d(np.arange(fx.size), rows)
+    if not (miss.size and extra.size):
+        return 0
+    floor = np.abs(floor_errors(truth, lattice)[miss])
+    open_ = single_lens(truth, lattice)[miss] | (floor > OPEN_FLOOR_NN * nn)
+    lateral = np.hypot(fx[extra, None] - tx[miss], fy[extra, None] - ty[miss])
+    ok = open_ & (lateral <= max_distance * nn) & (np.abs(fz[extra, None] - tz[miss]) <= slack * floor)
+    r, c = linear_sum_assignment(np.where(ok, lateral, 1e9))
+    return int(ok[r, c].sum())
+
+
 def false_on_reflection(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], chamber: ChamberLight,
                         model: CameraModel, *, nn_mm: float | None = None, max_distance: float = 0.5) -> int:
     """How many found particles match no true one and sit where a reflection's light falls.
