@@ -135,4 +135,3 @@ def test_a_particle_found_at_its_floor_beyond_the_match_is_counted_apart():
     # Twice its floor's error, or across from it by more than the match allows: not at its floor.
     assert at_floor({**found, "Z": p.z_mm + 2.0 * floor[0]}, truth, m.lattice, nn_mm=nn) == 0
     assert at_floor({**found, "X": p.x_mm + nn}, truth, m.lattice, nn_mm=nn) == 0
-
