@@ -45,8 +45,8 @@ from analysis.formats.particle_table import read_csv  # noqa: E402
 from analysis.simulation.bound import position_bound  # noqa: E402
 from analysis.simulation.chamber import ChamberLight  # noqa: E402
 from analysis.simulation.realism import EFFECTS, IDEAL_BLUR_PX  # noqa: E402
-from analysis.simulation.scoring import (RECALL_BLUR_BINS, at_floor, blur_bin_label,  # noqa: E402
-                                         false_on_reflection, floor_split, recall_in_reflections)
+from analysis.simulation.scoring import (RECALL_BLUR_BINS, blur_bin_label, false_on_reflection,  # noqa: E402
+                                         floor_split, recall_in_reflections)
 
 @dataclass(frozen=True)
 class Scene:
@@ -107,7 +107,6 @@ def run(work: Path, scene: Scene, case: str, seed: int, size: int, repeat: int, 
     row["in_light"] = asdict(recall_in_reflections(found, truth, chamber, model, nn_mm=row["score"].nn_mm))
     row["depth_bound_over_nn"] = depth_bound(truth, doc, seed) / row["score"].nn_mm
     row["floor_split"] = floor_split(found, truth, model.lattice, nn_mm=row["score"].nn_mm).to_dict()
-    row["at_floor"] = at_floor(found, truth, model.lattice, nn_mm=row["score"].nn_mm)
     row.update(scene=scene.name, case=case)
     return row
 
@@ -251,11 +250,11 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
                   f"| {span([r['wall_s'] for r in rs], 1.0, 2):>9s} "
                   f"| {max(r['peak_rss_mb'] for r in rs):7.0f} | {max(r['peak_anon_mb'] for r in rs):7.0f} |")
         print()
-        floor_lines = [f"{case} {sum(r['at_floor'] for r in mine if r['case'] == case)}" for case in cases
-                       if any(r["at_floor"] for r in mine if r["case"] == case)]
+        at_floor = {case: sum(r["floor_split"]["n_at_floor"] for r in mine if r["case"] == case) for case in cases}
+        floor_lines = [f"{case} {n}" for case, n in at_floor.items() if n]
         if floor_lines:
             print("found at their depth floor beyond the match, so counted as missed and as false (within 1.2x of "
-                  "the floor; analysis.simulation.scoring.at_floor): " + ", ".join(floor_lines) + "\n")
+                  "the floor; FloorSplit.n_at_floor in analysis.simulation.scoring): " + ", ".join(floor_lines) + "\n")
         recall_by_blur(mine, cases)
         recall_in_light(mine, cases)
     print("cases: ideal = the ideal camera; each effect alone at the typical F01's value (Realism.typical(), "

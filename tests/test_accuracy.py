@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from analysis.simulation.scoring import (at_floor, depth_floor, floor_errors, floor_split, match, pixel_limited_alpha,
+from analysis.simulation.scoring import (depth_floor, floor_errors, floor_split, match, pixel_limited_alpha,
                                          single_lens)
 from analysis.camera.model import CameraModel
 from analysis.simulation.scenarios import Particles
@@ -131,7 +131,7 @@ def test_a_particle_found_at_its_floor_beyond_the_match_is_counted_apart():
     # match, only the first at its floor.
     found = {"X": p.x_mm, "Y": p.y_mm, "Z": p.z_mm + np.array([floor[0], floor[0]])}
     assert match(found, truth, nn_mm=nn)[0].size == 0
-    assert at_floor(found, truth, m.lattice, nn_mm=nn) == 1
+    assert floor_split(found, truth, m.lattice, nn_mm=nn).n_at_floor == 1
     # Twice its floor's error, or across from it by more than the match allows: not at its floor.
-    assert at_floor({**found, "Z": p.z_mm + 2.0 * floor[0]}, truth, m.lattice, nn_mm=nn) == 0
-    assert at_floor({**found, "X": p.x_mm + nn}, truth, m.lattice, nn_mm=nn) == 0
+    assert floor_split({**found, "Z": p.z_mm + 2.0 * floor[0]}, truth, m.lattice, nn_mm=nn).n_at_floor == 0
+    assert floor_split({**found, "X": p.x_mm + nn}, truth, m.lattice, nn_mm=nn).n_at_floor == 0

@@ -195,6 +195,9 @@ def floor_errors(truth: Mapping[str, np.ndarray], lattice: Lattice) -> np.ndarra
 #: exceeds this fraction of NN: its pixels leave the depth open along a line (a blur over one cell
 #: edge, near focus), as :func:`pixel_limited_alpha` finds, rather than pinning it.
 OPEN_FLOOR_NN = 0.01
+#: A particle the match leaves out counts as found at its floor (:class:`FloorSplit`) where its
+#: depth error is at most this many times its floor error: the issue's target for such particles.
+FLOOR_SLACK = 1.2
 
 
 @dataclass
@@ -207,6 +210,11 @@ class FloorSplit:
     root is how far above the floor they are. ``rest_ss`` sums the other matched particles'.
     Of those, ``open_ss`` sums the open ones' (floor error above :data:`OPEN_FLOOR_NN` of NN) and
     ``open_floor_ss`` their floor's; the rest of the rest are pinned by their pixels.
+    ``n_at_floor`` counts true particles the match left out that were found at their floor: a found
+    particle the match left out lies within the match's distance across of one whose pixels leave
+    its depth open (one lens, or open), with its depth error at most :data:`FLOOR_SLACK` times that
+    particle's floor error. The match counts each as missed and as false, though the issue judges
+    such a depth against its floor.
     """
 
     n_one_lens: int
@@ -217,6 +225,7 @@ class FloorSplit:
     n_open: int
     open_ss: float
     open_floor_ss: float
+    n_at_floor: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -239,13 +248,32 @@ def floor_split(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray]
         nn_mm = mean_nn_distance(*(np.asarray(truth[c], float) for c in ("X", "Y", "Z")))
     rows, cols = match(found, truth, nn_mm=nn_mm, max_distance=max_distance)
     dz = np.asarray(found["Z"], float)[rows] - np.asarray(truth["Z"], float)[cols]
-    one = single_lens(truth, lattice)[cols]
-    floor = floor_errors(truth, lattice)[cols]
+    one_all, floor_all = single_lens(truth, lattice), floor_errors(truth, lattice)
+    one, floor = one_all[cols], floor_all[cols]
     open_ = ~one & (np.abs(floor) > OPEN_FLOOR_NN * nn_mm)
     return FloorSplit(n_one_lens=int(one.sum()), one_lens_ss=float(np.sum(dz[one] ** 2)),
                       floor_ss=float(np.sum(floor[one] ** 2)), n_rest=int((~one).sum()),
                       rest_ss=float(np.sum(dz[~one] ** 2)), n_open=int(open_.sum()),
-                      open_ss=float(np.sum(dz[open_] ** 2)), open_floor_ss=float(np.sum(floor[open_] ** 2)))
+                      open_ss=float(np.sum(dz[open_] ** 2)), open_floor_ss=float(np.sum(floor[open_] ** 2)),
+                      n_at_floor=_at_floor(found, truth, rows, cols, one_all, np.abs(floor_all), max_distance * nn_mm,
+                                           OPEN_FLOOR_NN * nn_mm))
+
+
+def _at_floor(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], rows: np.ndarray, cols: np.ndarray,
+              one: np.ndarray, floor: np.ndarray, reach_mm: float, open_mm: float) -> int:
+    """:class:`FloorSplit`'s ``n_at_floor``, from the match (``rows``, ``cols``) and every true
+    particle's one-lens mask and absolute floor error."""
+    miss = np.setdiff1d(np.arange(floor.size), cols)
+    extra = np.setdiff1d(np.arange(np.asarray(found["X"]).size), rows)
+    if not (miss.size and extra.size):
+        return 0
+    fx, fy, fz = (np.asarray(found[c], float)[extra, None] for c in ("X", "Y", "Z"))
+    tx, ty, tz = (np.asarray(truth[c], float)[miss] for c in ("X", "Y", "Z"))
+    lateral = np.hypot(fx - tx, fy - ty)
+    ok = ((one[miss] | (floor[miss] > open_mm)) & (lateral <= reach_mm)
+          & (np.abs(fz - tz) <= FLOOR_SLACK * floor[miss]))
+    r, c = linear_sum_assignment(np.where(ok, lateral, 1e9))
+    return int(ok[r, c].sum())
 
 
 def mean_nn_distance(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> float:
@@ -344,29 +372,6 @@ def score(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], *, n
                  lateral_rms_over_nn=float(np.sqrt(np.mean(lateral**2))) / nn if m else math.nan,
                  depth_by_blur=by_blur, recall_by_blur=recall_by_blur, pairs_total=len(pairs),
                  pairs_separated=separated)
-
-
-def at_floor(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], lattice: Lattice, *,
-             nn_mm: float | None = None, max_distance: float = 0.5, slack: float = 1.2) -> int:
-    """How many true particles the match left out were found at their depth floor: a found particle
-    the match left out, within ``max_distance`` of NN across of one whose pixels leave its depth open
-    (one lens, or open: :data:`OPEN_FLOOR_NN`), its depth error at most ``slack`` times that
-    particle's floor error (:func:`floor_errors`). :func:`match` counts each as missed and as false,
-    though the issue judges such a depth against its floor (within 1.2x)."""
-    tx, ty, tz = (np.asarray(truth[c], float) for c in ("X", "Y", "Z"))
-    fx, fy, fz = (np.asarray(found[c], float) for c in ("X", "Y", "Z"))
-    nn = mean_nn_distance(tx, ty, tz) if nn_mm is None else float(nn_mm)
-    rows, cols = match(found, truth, nn_mm=nn, max_distance=max_distance)
-    miss = np.setdiff1d(np.arange(tx.size), cols)
-    extra = np.setdiff1d(np.arange(fx.size), rows)
-    if not (miss.size and extra.size):
-        return 0
-    floor = np.abs(floor_errors(truth, lattice)[miss])
-    open_ = single_lens(truth, lattice)[miss] | (floor > OPEN_FLOOR_NN * nn)
-    lateral = np.hypot(fx[extra, None] - tx[miss], fy[extra, None] - ty[miss])
-    ok = open_ & (lateral <= max_distance * nn) & (np.abs(fz[extra, None] - tz[miss]) <= slack * floor)
-    r, c = linear_sum_assignment(np.where(ok, lateral, 1e9))
-    return int(ok[r, c].sum())
 
 
 def false_on_reflection(found: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], chamber: ChamberLight,
