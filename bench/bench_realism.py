@@ -18,7 +18,7 @@ Usage::
 
     NUMBA_CACHE_DIR=.cache/numba .venv/bin/python bench/bench_realism.py [--seeds 1 2]
         [--scenes layer ball-off] [--cases ideal blur all] [--size 3280] [--work DIR] [--json out.json]
-        [--blur-px 1.2] [--psf-halo 0.15]
+        [--blur-px 1.2] [--psf-halo 0.15] [--brightness 700] [--background 200]
 
 Simulated cases are kept under ``--work`` and reused when run again (default: a temporary folder, removed
 at the end); their look-up tables only with ``--keep-tables``.
@@ -76,27 +76,30 @@ CASES = ("ideal", *EFFECTS, *REFERENCES, "all")
 BOUND_PARTICLES = 12
 
 
-def simulate_args(case: str, blur_px: float | None = None, psf_halo: float | None = None) -> list[str]:
-    """``plenodust simulate`` options of a case (``blur_px``: its optical blur instead of the case's own;
-    ``psf_halo``: that share of the point spread's light in a wide halo)."""
-    optics = [] if blur_px is None else ["--blur-px", f"{blur_px:g}"]
-    optics += [] if psf_halo is None else ["--psf-halo", f"{psf_halo:g}"]
-    return optics if case == "ideal" else ["--realism", REFERENCES.get(case, case), *optics]
+#: ``plenodust simulate`` options every case of a run may be given (``--blur-px`` etc. of this
+#: bench), and how each shows in the case's file and folder names.
+OVERRIDES = {"blur-px": "blur", "psf-halo": "halo", "brightness": "bright", "background": "glow"}
 
 
-def case_tag(case: str, blur_px: float | None = None, psf_halo: float | None = None) -> str:
-    """The case's name in file and folder names, with the optics it was given."""
-    return (case + ("" if blur_px is None else f"-blur{blur_px:g}")
-            + ("" if psf_halo is None else f"-halo{psf_halo:g}"))
+def simulate_args(case: str, overrides: dict[str, float] | None = None) -> list[str]:
+    """``plenodust simulate`` options of a case, with ``overrides`` (an option name without its leading dashes, a key
+    of :data:`OVERRIDES`: value) given to every case."""
+    extra = [arg for name, value in (overrides or {}).items() for arg in (f"--{name}", f"{value:g}")]
+    return extra if case == "ideal" else ["--realism", REFERENCES.get(case, case), *extra]
+
+
+def case_tag(case: str, overrides: dict[str, float] | None = None) -> str:
+    """The case's name in file and folder names, with the overrides it was given."""
+    return case + "".join(f"-{OVERRIDES[name]}{value:g}" for name, value in (overrides or {}).items())
 
 
 def run(work: Path, scene: Scene, case: str, seed: int, size: int, repeat: int, keep_tables: bool = False,
-        blur_px: float | None = None, psf_halo: float | None = None) -> dict:
+        overrides: dict[str, float] | None = None) -> dict:
     """Simulate, process and score one case (its files kept under ``work``)."""
-    tag = case_tag(case, blur_px, psf_halo)
+    tag = case_tag(case, overrides)
     table = work / f"{scene.name}-{seed}-{size}-{tag}.particles.csv"
     row = bench_pipeline.run_case(work, scene.scenario, seed, size, json.dumps(scene.params), repeat, scene.centre_z,
-                                  simulate_args(case, blur_px, psf_halo), tag, table, keep_tables=keep_tables)
+                                  simulate_args(case, overrides), tag, table, keep_tables=keep_tables)
     folder = bench_pipeline.case_folder(work, scene.scenario, seed, size, scene.centre_z, tag)
     doc = json.loads((folder / "scenario.json").read_text())
     chamber = ChamberLight.from_dict(doc.get("realism", {}).get("chamber", {}))
@@ -321,14 +324,21 @@ def main() -> int:
     parser.add_argument("--psf-halo", type=float, default=None,
                         help="every case's point spread with this share of its light in a wide Gaussian halo (the "
                              "pipeline fits a Gaussian and is not told): e.g. 0.15; default: none")
+    parser.add_argument("--brightness", type=float, default=None,
+                        help="every case's median particle brightness, DN of a fully lit pixel (default 1800): "
+                             "fainter particles, or a brighter glow, test the detection nearer the noise")
+    parser.add_argument("--background", type=float, default=None,
+                        help="every case's plasma glow in the same units (default 40)")
     args = parser.parse_args()
+    overrides = {name: value for name, value in (("blur-px", args.blur_px), ("psf-halo", args.psf_halo),
+                                                 ("brightness", args.brightness), ("background", args.background))
+                 if value is not None}
     rows = []
     with work_folder(args.work, "plenodust-realism-") as work:
         for scene in args.scenes:
             for case in args.cases:
                 for seed in args.seeds:
-                    r = run(work, SCENES[scene], case, seed, args.size, args.repeat, args.keep_tables, args.blur_px,
-                            args.psf_halo)
+                    r = run(work, SCENES[scene], case, seed, args.size, args.repeat, args.keep_tables, overrides)
                     rows.append(r)
                     s = r["score"]
                     print(f"  done {scene:9s} {case:12s} seed {seed}: {s.n_matched}/{s.n_true} matched, "
