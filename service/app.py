@@ -151,7 +151,7 @@ def create_app(settings: Settings | None = None, *, camera: Any = None, store: S
             if state.watcher is not None:
                 await asyncio.to_thread(state.watcher.close)
             if store is None:
-                db.close()
+                await asyncio.to_thread(db.close)  # waits for the writes still under way
 
     app = FastAPI(title="plenodust", version="0.1.0", lifespan=lifespan, docs_url=None, redoc_url=None,
                   description="3D dusty-plasma particle coordinates from single Lytro F01 exposures. "

@@ -93,6 +93,14 @@ ADDED_COLUMNS = [
 ]
 
 
+#: How long :meth:`Database.close` waits for the reads and writes under way.
+CLOSE_WAIT_S = 30.0
+
+
+class DatabaseClosed(sqlite3.ProgrammingError):
+    """The database was used after :meth:`Database.close` (a thread outliving the service's stop)."""
+
+
 class Database:
     """A SQLite file opened in WAL mode, with one connection per thread.
 
@@ -111,6 +119,9 @@ class Database:
         self._local = threading.local()
         self._all: list[sqlite3.Connection] = []
         self._lock = threading.Lock()
+        self._idle = threading.Condition()  # guards _busy and _closed
+        self._busy = 0                      # threads inside read() or write() now
+        self._closed = False
         # executescript commits on its own; the statements are idempotent.
         self.connection().executescript(SCHEMA)
         self._add_missing_columns()
@@ -142,20 +153,35 @@ class Database:
         return conn
 
     @contextmanager
+    def _in_use(self) -> Iterator[sqlite3.Connection]:
+        """This thread's connection, counted as in use until the block ends (see :meth:`close`)."""
+        with self._idle:
+            if self._closed:
+                raise DatabaseClosed(f"{self.path} is closed (the service is stopping)")
+            self._busy += 1
+        try:
+            yield self.connection()
+        finally:
+            with self._idle:
+                self._busy -= 1
+                self._idle.notify_all()
+
+    @contextmanager
     def write(self) -> Iterator[sqlite3.Connection]:
         """A write transaction, taken at once (``BEGIN IMMEDIATE``) so it cannot deadlock."""
-        conn = self.connection()
-        conn.execute("BEGIN IMMEDIATE")
-        try:
-            yield conn
-        except BaseException:
-            conn.execute("ROLLBACK")
-            raise
-        conn.execute("COMMIT")
+        with self._in_use() as conn:
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                yield conn
+            except BaseException:
+                conn.execute("ROLLBACK")
+                raise
+            conn.execute("COMMIT")
 
     def read(self, sql: str, params: tuple | dict = ()) -> list[sqlite3.Row]:
         """Rows of one query."""
-        return self.connection().execute(sql, params).fetchall()
+        with self._in_use() as conn:
+            return conn.execute(sql, params).fetchall()
 
     def writable(self) -> bool:
         """Whether a write transaction can be committed now (for ``/readyz``)."""
@@ -176,8 +202,16 @@ class Database:
             conn.execute("INSERT INTO settings_kv (key, value) VALUES (?, ?) "
                          "ON CONFLICT (key) DO UPDATE SET value = excluded.value", (key, value))
 
-    def close(self) -> None:
-        """Close every thread's connection."""
+    def close(self, *, wait_s: float = CLOSE_WAIT_S) -> None:
+        """Close every thread's connection, once the reads and writes under way have ended (at most
+        ``wait_s``); later ones raise :class:`DatabaseClosed`.
+
+        A thread left running by a cancelled task (a job's last write, the tracker saving a run) may
+        still be inside a statement when the service stops: closing its connection under it crashed
+        the process (a segmentation fault in SQLite)."""
+        with self._idle:
+            self._closed = True
+            self._idle.wait_for(lambda: self._busy == 0, timeout=wait_s)
         with self._lock:
             for conn in self._all:
                 try:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from analysis.formats.atomic_write import atomic_path, write_atomic
-from service.database import Database
+from service.database import Database, DatabaseClosed
 from service.results import JobOutput
 from service.store import Store
 
@@ -125,3 +125,34 @@ def test_nan_columns_where_one_frame_lacks_a_column(store: Store) -> None:
     store.update_run_file(b, second)
     extra = store.read_run_columns("r")["extra"]
     assert np.isnan(extra[0]) and extra[1] == 9.0
+
+
+def test_closing_waits_for_a_write_under_way_and_then_refuses_more(tmp_path: Path) -> None:
+    """A thread still writing when the service stops (a cancelled task's) finishes its transaction
+    before the connections close; closing them under it crashed the service (SQLite segfault)."""
+    import threading
+    import time
+
+    db = Database(tmp_path / "index.sqlite")
+    inside = threading.Event()
+    errors: list[BaseException] = []
+
+    def slow_write() -> None:
+        try:
+            with db.write() as conn:
+                inside.set()
+                time.sleep(0.3)
+                conn.execute("INSERT INTO settings_kv (key, value) VALUES ('last', 'written')")
+        except BaseException as exc:  # noqa: BLE001 - reported by the assertion below
+            errors.append(exc)
+
+    writer = threading.Thread(target=slow_write)
+    writer.start()
+    assert inside.wait(10)
+    db.close()
+    writer.join()
+    assert errors == []
+    assert Database(tmp_path / "index.sqlite").get_value("last") == "written"
+    with pytest.raises(DatabaseClosed, match="closed"):
+        db.get_value("last")
+
