@@ -82,8 +82,8 @@ OVERRIDES = {"blur-px": "blur", "psf-halo": "halo", "brightness": "bright", "bac
 
 
 def simulate_args(case: str, overrides: dict[str, float] | None = None) -> list[str]:
-    """``plenodust simulate`` options of a case, with ``overrides`` (an option name without its leading dashes, a key
-    of :data:`OVERRIDES`: value) given to every case."""
+    """``plenodust simulate`` options of a case, with ``overrides`` given to every case (an option's
+    name without its leading dashes, a key of :data:`OVERRIDES`, and its value)."""
     extra = [arg for name, value in (overrides or {}).items() for arg in (f"--{name}", f"{value:g}")]
     return extra if case == "ideal" else ["--realism", REFERENCES.get(case, case), *extra]
 
