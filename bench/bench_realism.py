@@ -45,8 +45,8 @@ from analysis.formats.particle_table import read_csv  # noqa: E402
 from analysis.simulation.bound import position_bound  # noqa: E402
 from analysis.simulation.chamber import ChamberLight  # noqa: E402
 from analysis.simulation.realism import EFFECTS, IDEAL_BLUR_PX  # noqa: E402
-from analysis.simulation.scoring import (RECALL_BLUR_BINS, blur_bin_label, false_on_reflection,  # noqa: E402
-                                         floor_split, recall_in_reflections)
+from analysis.simulation.scoring import (FLOOR_SLACK, RECALL_BLUR_BINS, blur_bin_label,  # noqa: E402
+                                         false_on_reflection, floor_split, recall_in_reflections)
 
 @dataclass(frozen=True)
 class Scene:
@@ -256,8 +256,9 @@ def report(rows: list[dict], scenes: list[str], cases: list[str], seeds: list[in
         at_floor = {case: sum(r["floor_split"]["n_at_floor"] for r in mine if r["case"] == case) for case in cases}
         floor_lines = [f"{case} {n}" for case, n in at_floor.items() if n]
         if floor_lines:
-            print("found at their depth floor beyond the match, so counted as missed and as false (within 1.2x of "
-                  "the floor; FloorSplit.n_at_floor in analysis.simulation.scoring): " + ", ".join(floor_lines) + "\n")
+            print(f"found at their depth floor beyond the match, so counted as missed and as false (within "
+                  f"{FLOOR_SLACK:g}x of the floor; FloorSplit.n_at_floor in analysis.simulation.scoring): "
+                  + ", ".join(floor_lines) + "\n")
         recall_by_blur(mine, cases)
         recall_in_light(mine, cases)
     print("cases: ideal = the ideal camera; each effect alone at the typical F01's value (Realism.typical(), "
